@@ -1,0 +1,43 @@
+# sparsetools: `make demo` and `make test` do all set-up on a fresh machine.
+SHELL := /bin/bash
+VENV ?= .venv
+PY := $(VENV)/bin/python
+PIP := $(PY) -m pip
+STAMP := $(VENV)/.setup-done
+TORCH_VERSION ?= 2.13.0
+
+.PHONY: setup demo test lint bench clean sample-data docs-pictures
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml
+	@if [ "$$(id -u)" = "0" ] && ! ldconfig -p 2>/dev/null | grep -q libusb-1.0; then \
+		echo ">> installing libusb-1.0-0 (needed by Open3D)"; \
+		(apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libusb-1.0-0) \
+			|| echo ">> warning: could not install libusb-1.0-0; PCD/PLY I/O will be unavailable"; \
+	fi
+	test -x $(PY) || python3 -m venv $(VENV)
+	$(PIP) install -q --upgrade pip
+	# torch first, pinned, so that no CUDA build is pulled in by the extras below
+	$(PIP) install -q torch==$(TORCH_VERSION)
+	$(PIP) install -q -e ".[train,dask,dev]"
+	touch $(STAMP)
+
+demo: setup
+	$(VENV)/bin/sparsetools demo --out out/demo
+
+test: setup
+	$(PY) -m pytest -q
+
+lint: setup
+	$(VENV)/bin/ruff check src tests benchmarks
+	$(VENV)/bin/ruff format --check src tests benchmarks
+
+bench: setup
+	$(PY) benchmarks/run_all.py
+
+sample-data: setup
+	$(VENV)/bin/sparsetools synth-scene sample_data/synthetic --seed 0 --frames 3 --overwrite
+
+clean:
+	rm -rf out .pytest_cache build

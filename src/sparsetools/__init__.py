@@ -1,0 +1,60 @@
+"""sparsetools: camera + sparse depth sensor data to depth-estimation datasets.
+
+The public API lives at the top level and is imported lazily, so ``import sparsetools`` is
+fast and pulls in neither numba, Open3D nor torch::
+
+    import sparsetools as st
+    points = st.read_points("000000.bin")               # (N, 4) float32
+    calib = st.load_calibration("calib/000000.txt").with_size(1242, 375)
+    depth = st.project_points(points, calib)            # (375, 1242) float32 metres
+    st.write_depth_png("000000.png", depth)
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING
+
+from ._version import __version__
+from .errors import SparsetoolsError
+
+# name -> module (relative to this package) that defines it
+_LAZY = {
+    "Calibration": ".calibration",
+    "read_points": ".io.pointcloud",
+    "write_points": ".io.pointcloud",
+    "load_calibration": ".io.calib",
+    "read_depth_png": ".io.image",
+    "write_depth_png": ".io.image",
+    "read_image": ".io.image",
+    "write_image": ".io.image",
+    "read_radar_pcd": ".io.nuscenes",
+    "write_radar_pcd": ".io.nuscenes",
+    "frame_rng": ".random",
+    "run_frames": ".pipeline",
+}
+
+__all__ = ["SparsetoolsError", "__version__", *sorted(_LAZY)]
+
+
+def __getattr__(name: str):
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'sparsetools' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module, __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_LAZY))
+
+
+if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
+    from .calibration import Calibration
+    from .io.calib import load_calibration
+    from .io.image import read_depth_png, read_image, write_depth_png, write_image
+    from .io.nuscenes import read_radar_pcd, write_radar_pcd
+    from .io.pointcloud import read_points, write_points
+    from .pipeline import run_frames
+    from .random import frame_rng

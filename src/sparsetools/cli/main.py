@@ -1,0 +1,105 @@
+"""The ``sparsetools`` command group.
+
+Subcommands are imported only when invoked (``--help`` stays fast). Library errors
+(:class:`sparsetools.errors.SparsetoolsError`) become one line on stderr and exit code 1;
+usage errors are click's (exit code 2); ``--debug`` shows tracebacks.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import sys
+
+import click
+
+from .._version import __version__
+
+# command name -> "module:function" under sparsetools.cli
+COMMANDS = {
+    "synth-scene": "synth_scene:synth_scene",
+    "project": "project:project",
+    "beams": "beams:beams",
+    "jbf-expand": "jbf_expand:jbf_expand",
+    "lowlight-synth": "lowlight_synth:lowlight_synth",
+    "equalize": "equalize:equalize",
+    "underwater": "underwater:underwater",
+    "dataset": "dataset:dataset",
+    "viz": "viz:viz",
+    "stats": "stats:stats",
+    "train": "train:train",
+    "eval": "eval:eval_",
+    "pipeline": "pipeline:pipeline",
+    "demo": "demo:demo",
+}
+
+
+class LazyGroup(click.Group):
+    """A click group whose subcommands are imported on first use."""
+
+    def list_commands(self, ctx):
+        return [name for name in COMMANDS if self.get_command(ctx, name) is not None]
+
+    def get_command(self, ctx, name):
+        target = COMMANDS.get(name)
+        if target is None:
+            return None
+        module, attr = target.split(":")
+        name = f"sparsetools.cli.{module}"
+        try:
+            mod = importlib.import_module(name)
+        except ModuleNotFoundError as exc:
+            if exc.name == name:  # command not built yet in this checkout
+                return None
+            raise
+        return getattr(mod, attr)
+
+    def invoke(self, ctx):
+        from ..errors import SparsetoolsError
+
+        debug = ctx.params.get("debug", False)
+        try:
+            return super().invoke(ctx)
+        except SparsetoolsError as exc:
+            if debug:
+                raise
+            click.echo(f"Error: {exc}", err=True)
+            ctx.exit(1)
+        except KeyboardInterrupt:
+            click.echo("Interrupted: completed outputs are kept; rerun to resume.", err=True)
+            ctx.exit(130)
+        except MemoryError:
+            click.echo("Error: out of memory (try fewer --workers or smaller inputs)", err=True)
+            ctx.exit(1)
+
+
+@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, "--version", prog_name="sparsetools")
+@click.option("-v", "--verbose", count=True, help="More log output on stderr (-vv for debug).")
+@click.option("-q", "--quiet", is_flag=True, help="Only errors on stderr; no progress bars.")
+@click.option("--debug", is_flag=True, help="Show full tracebacks instead of one-line errors.")
+@click.pass_context
+def cli(ctx, verbose, quiet, debug):
+    """Turn camera + sparse depth sensor data into depth-estimation datasets.
+
+    \b
+    Typical flow:
+      sparsetools synth-scene out/scene --frames 3          # sample data with ground truth
+      sparsetools project out/scene/velodyne --calib out/scene/calib -o out/depth
+      sparsetools beams out/scene/velodyne --n 4 -o out/beams4
+    Every command has --help with a worked example.
+    """
+    level = logging.ERROR if quiet else (logging.WARNING, logging.INFO, logging.DEBUG)[min(verbose, 2)]
+    logging.basicConfig(level=level, format="%(levelname)s: %(message)s", stream=sys.stderr, force=True)
+    ctx.ensure_object(dict)
+    ctx.obj["quiet"] = quiet
+    ctx.obj["debug"] = debug
+
+
+def main(argv=None):
+    """Console-script entry point."""
+    cli.main(args=argv, prog_name="sparsetools")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

@@ -1,0 +1,1 @@
+"""File formats only: point clouds, calibrations, images and depth PNGs, nuScenes tables."""

@@ -1,0 +1,257 @@
+"""Calibration files: KITTI object, KITTI raw (pair of files), and plain JSON.
+
+All produce a :class:`sparsetools.calibration.Calibration`. The JSON form is::
+
+    {"K": [[fx, 0, cx], [0, fy, cy], [0, 0, 1]],
+     "T_cam_from_sensor": [[...4x4...]], "width": W, "height": H}
+
+optionally with ``"P"`` (3x4). The mmdetection3d-derived nuScenes JSON (``cameras`` ->
+``cam2img`` / ``lidar2cam``) is read too, choosing the camera by name.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ..calibration import Calibration
+from ..errors import CalibrationError, FormatError
+from .atomic import atomic_path
+
+__all__ = [
+    "load_calibration",
+    "read_json_calib",
+    "read_kitti_object_calib",
+    "read_kitti_raw_calib",
+    "read_key_value_file",
+    "write_json_calib",
+    "write_kitti_object_calib",
+]
+
+KITTI_IMAGE_SIZE = (1242, 375)
+
+
+def read_key_value_file(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Parse ``key: v1 v2 ...`` lines (KITTI calib format) into float64 arrays.
+
+    Lines whose values are not all numbers (``calib_time: 09-Jan-2012 ...``) are kept only
+    if a later lookup asks for them; they are stored as ``None`` so a missing key and a
+    non-numeric key are told apart.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8", errors="strict")
+    except FileNotFoundError as exc:
+        raise CalibrationError(f"{path}: no such calibration file") from exc
+    except (UnicodeDecodeError, IsADirectoryError) as exc:
+        raise CalibrationError(f"{path}: not a text calibration file") from exc
+    except OSError as exc:
+        raise CalibrationError(f"{path}: cannot read ({exc.strerror or exc})") from exc
+    out: dict[str, np.ndarray | None] = {}
+    for line in text.splitlines():
+        if ":" not in line:
+            continue
+        key, _, value = line.partition(":")
+        try:
+            out[key.strip()] = np.array([float(v) for v in value.split()], dtype=np.float64)
+        except ValueError:
+            out[key.strip()] = None
+    return out
+
+
+def _matrix(values: dict, key: str, shape: tuple[int, int], path: Path) -> np.ndarray:
+    if key not in values:
+        raise CalibrationError(f"{path}: missing key '{key}'")
+    v = values[key]
+    if v is None or not np.all(np.isfinite(v)):
+        raise CalibrationError(f"{path}: key '{key}' holds non-numeric values")
+    if v.size != shape[0] * shape[1]:
+        raise CalibrationError(
+            f"{path}: key '{key}' has {v.size} values, expected {shape[0] * shape[1]}"
+        )
+    return v.reshape(shape)
+
+
+def _homogeneous(M: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[: M.shape[0], : M.shape[1]] = M
+    return T
+
+
+def _split_projection(P: np.ndarray, path: Path) -> np.ndarray:
+    K = P[:, :3].copy()
+    if abs(np.linalg.det(K)) < 1e-9:
+        raise CalibrationError(f"{path}: projection matrix is singular")
+    return K
+
+
+def read_kitti_object_calib(
+    path: str | os.PathLike, *, camera: int = 2, image_size: tuple[int, int] | None = None
+) -> Calibration:
+    """Read a KITTI object-benchmark calib file (``P0..P3``, ``R0_rect``, ``Tr_velo_to_cam``).
+
+    The sensor is the Velodyne: ``T_cam_from_sensor = R0_rect @ Tr_velo_to_cam`` (rectified
+    reference camera) and ``P = P{camera}`` (3x4, with its translation column), so
+    ``P @ T`` is KITTI's and monodepth2's projection. Image size is not in the file; pass
+    ``image_size`` (W, H) or set it later with :meth:`Calibration.with_size`.
+    """
+    path = Path(path)
+    values = read_key_value_file(path)
+    P = _matrix(values, f"P{camera}", (3, 4), path)
+    R0 = _matrix(values, "R0_rect", (3, 3), path)
+    Tr = _matrix(values, "Tr_velo_to_cam", (3, 4), path)
+    K = _split_projection(P, path)
+    T = _homogeneous(R0) @ _homogeneous(Tr)
+    w, h = image_size if image_size is not None else (None, None)
+    return Calibration(K=K, T_cam_from_sensor=T, P=P, width=w, height=h, source=str(path))
+
+
+def read_kitti_raw_calib(folder: str | os.PathLike, *, camera: int = 2) -> Calibration:
+    """Read a KITTI raw date folder's ``calib_cam_to_cam.txt`` + ``calib_velo_to_cam.txt``.
+
+    ``T = R_rect_00 @ [R | T]`` and ``P = P_rect_0{camera}``; the image size is
+    ``S_rect_0{camera}`` (1242x375 for 2011_09_26).
+    """
+    folder = Path(folder)
+    c2c = folder / "calib_cam_to_cam.txt"
+    v2c = folder / "calib_velo_to_cam.txt"
+    for f in (c2c, v2c):
+        if not f.is_file():
+            raise CalibrationError(f"{folder}: missing {f.name} (a KITTI raw calib folder holds both)")
+    cam = read_key_value_file(c2c)
+    velo = read_key_value_file(v2c)
+    P = _matrix(cam, f"P_rect_0{camera}", (3, 4), c2c)
+    R_rect = _matrix(cam, "R_rect_00", (3, 3), c2c)
+    S = _matrix(cam, f"S_rect_0{camera}", (1, 2), c2c).ravel()
+    R = _matrix(velo, "R", (3, 3), v2c)
+    t = _matrix(velo, "T", (3, 1), v2c)
+    K = _split_projection(P, c2c)
+    T = _homogeneous(R_rect) @ _homogeneous(np.hstack([R, t]))
+    return Calibration(
+        K=K, T_cam_from_sensor=T, P=P, width=int(round(S[0])), height=int(round(S[1])),
+        source=str(folder),
+    )
+
+
+def _as_array(d: dict, key: str, shape: tuple[int, int], path: Path) -> np.ndarray:
+    if key not in d:
+        raise CalibrationError(f"{path}: missing key '{key}'")
+    try:
+        a = np.array(d[key], dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise CalibrationError(f"{path}: key '{key}' holds non-numeric values") from exc
+    if a.shape != shape:
+        raise CalibrationError(f"{path}: key '{key}' must be {shape[0]}x{shape[1]}, got {a.shape}")
+    return a
+
+
+def read_json_calib(path: str | os.PathLike, *, camera: str | int | None = None) -> Calibration:
+    """Read a JSON calibration (plain form, or the nuScenes ``cameras`` form; see module doc)."""
+    path = Path(path)
+    try:
+        d = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError as exc:
+        raise CalibrationError(f"{path}: no such calibration file") from exc
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise CalibrationError(f"{path}: not valid JSON ({exc})") from exc
+    if not isinstance(d, dict):
+        raise CalibrationError(f"{path}: expected a JSON object")
+    if "cameras" in d:
+        name = camera if isinstance(camera, str) else "CAM_FRONT"
+        if name not in d["cameras"]:
+            raise CalibrationError(
+                f"{path}: no camera '{name}' (has {', '.join(sorted(d['cameras']))})"
+            )
+        cam = d["cameras"][name]
+        K = _as_array(cam, "cam2img", (3, 3), path)
+        T = _as_array(cam, "lidar2cam", (4, 4), path)
+        w, h = cam.get("width", 1600), cam.get("height", 900)
+        return Calibration(K=K, T_cam_from_sensor=T, width=w, height=h, source=f"{path}:{name}")
+    K = _as_array(d, "K", (3, 3), path)
+    T = _as_array(d, "T_cam_from_sensor", (4, 4), path)
+    P = _as_array(d, "P", (3, 4), path) if d.get("P") is not None else None
+    extra = {k: v for k, v in d.items() if k not in {"K", "T_cam_from_sensor", "P", "width", "height"}}
+    return Calibration(
+        K=K, T_cam_from_sensor=T, P=P, width=d.get("width"), height=d.get("height"),
+        source=str(path), extra=extra,
+    )
+
+
+def write_json_calib(
+    path: str | os.PathLike, calib: Calibration, *, overwrite: bool = True, **extra
+) -> None:
+    """Write ``calib`` as plain JSON (atomically); ``extra`` keys are stored alongside."""
+    d = calib.to_dict()
+    d.update(extra)
+    with atomic_path(path, overwrite=overwrite) as tmp:
+        tmp.write_text(json.dumps(d, indent=1) + "\n", encoding="utf-8")
+
+
+def write_kitti_object_calib(
+    path: str | os.PathLike, calib: Calibration, *, overwrite: bool = True
+) -> None:
+    """Write a KITTI object calib file with ``P2`` = calib's P (or [K|0]), ``R0_rect`` = I.
+
+    ``Tr_velo_to_cam`` holds ``T_cam_from_sensor``; P0, P1, P3 repeat P2 so standard
+    readers that expect them find them.
+    """
+    P = calib.P if calib.P is not None else np.hstack([calib.K, np.zeros((3, 1))])
+
+    def fmt(a: np.ndarray) -> str:
+        return " ".join(f"{v:.12e}" for v in np.asarray(a).ravel())
+
+    lines = [f"P{i}: {fmt(P)}" for i in range(4)]
+    lines.append(f"R0_rect: {fmt(np.eye(3))}")
+    lines.append(f"Tr_velo_to_cam: {fmt(calib.T_cam_from_sensor[:3])}")
+    with atomic_path(path, overwrite=overwrite) as tmp:
+        tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
+
+
+def load_calibration(
+    path_or_dir: str | os.PathLike,
+    *,
+    camera: int | str = 2,
+    image_size: tuple[int, int] | None = None,
+) -> Calibration:
+    """Load any supported calibration.
+
+    Parameters
+    ----------
+    path_or_dir : path-like
+        A KITTI object calib ``.txt``, a KITTI raw date folder (or one of its two files),
+        or a ``.json`` calibration.
+    camera : int or str
+        KITTI camera index (0-3, default 2 = left colour) or nuScenes camera name.
+    image_size : (W, H), optional
+        Image size when the file does not hold it (KITTI object calib files do not).
+
+    Returns
+    -------
+    Calibration
+    """
+    p = Path(path_or_dir)
+    if not p.exists():
+        raise CalibrationError(f"{p}: no such calibration file or folder")
+    if p.is_dir():
+        if (p / "calib_cam_to_cam.txt").exists() or (p / "calib_velo_to_cam.txt").exists():
+            calib = read_kitti_raw_calib(p, camera=int(camera) if not isinstance(camera, str) else 2)
+        else:
+            raise CalibrationError(
+                f"{p}: folder holds no calib_cam_to_cam.txt / calib_velo_to_cam.txt "
+                "(for per-frame calib files pass the file, or a folder to a batch command)"
+            )
+    elif p.name in ("calib_cam_to_cam.txt", "calib_velo_to_cam.txt"):
+        calib = read_kitti_raw_calib(p.parent, camera=int(camera) if not isinstance(camera, str) else 2)
+    elif p.suffix.lower() == ".json":
+        calib = read_json_calib(p, camera=camera)
+    elif p.suffix.lower() == ".txt":
+        cam = int(camera) if not isinstance(camera, str) else 2
+        calib = read_kitti_object_calib(p, camera=cam)
+    else:
+        raise FormatError(f"{p}: unknown calibration format (expected .txt, .json or a folder)")
+    if image_size is not None:
+        calib = calib.with_size(*image_size)
+    return calib

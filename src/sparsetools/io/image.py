@@ -1,0 +1,209 @@
+"""RGB images and KITTI-convention depth PNGs (OpenCV codecs, size checked before decoding)."""
+
+from __future__ import annotations
+
+import logging
+import os
+import struct
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import FormatError, ParameterError
+from .atomic import atomic_path
+
+__all__ = [
+    "DEPTH_SCALE",
+    "MAX_IMAGE_PIXELS",
+    "decode_depth_png",
+    "encode_depth_png",
+    "image_header_size",
+    "read_depth_png",
+    "read_image",
+    "write_depth_png",
+    "write_image",
+]
+
+log = logging.getLogger(__name__)
+
+#: KITTI depth PNG: stored value = depth [m] * 256; 0 = no measurement.
+DEPTH_SCALE = 256.0
+#: Refuse to decode images declaring more pixels than this (decompression bombs).
+MAX_IMAGE_PIXELS = int(os.environ.get("SPARSETOOLS_MAX_IMAGE_PIXELS", 16384 * 16384 // 2))
+
+
+def image_header_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) declared by a PNG or JPEG header, without decoding; None if unknown."""
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) >= 24 and data[12:16] == b"IHDR":
+        w, h = struct.unpack(">II", data[16:24])
+        return int(w), int(h)
+    if data[:2] == b"\xff\xd8":
+        i = 2
+        n = len(data)
+        while i + 9 < n:
+            if data[i] != 0xFF:
+                i += 1
+                continue
+            marker = data[i + 1]
+            if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7 or marker == 0xFF:
+                i += 1 if marker == 0xFF else 2
+                continue
+            seg_len = struct.unpack(">H", data[i + 2 : i + 4])[0]
+            # SOF0..SOF15 except DHT (C4), JPG (C8) and DAC (CC) carry the frame size.
+            if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+                h, w = struct.unpack(">HH", data[i + 5 : i + 9])
+                return int(w), int(h)
+            i += 2 + seg_len
+    return None
+
+
+def _read_bytes(path: Path, what: str) -> bytes:
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError as exc:
+        raise FormatError(f"{path}: no such {what}") from exc
+    except IsADirectoryError as exc:
+        raise FormatError(f"{path}: is a folder, expected a {what}") from exc
+    except OSError as exc:
+        raise FormatError(f"{path}: cannot read ({exc.strerror or exc})") from exc
+    if not data:
+        raise FormatError(f"{path}: empty file, expected a {what}")
+    return data
+
+
+def _decode(data: bytes, path: Path, what: str, flags: int) -> np.ndarray:
+    import cv2
+
+    size = image_header_size(data)
+    if size is not None and size[0] * size[1] > MAX_IMAGE_PIXELS:
+        raise FormatError(
+            f"{path}: declares {size[0]}x{size[1]} pixels, above the limit of {MAX_IMAGE_PIXELS} "
+            "(set SPARSETOOLS_MAX_IMAGE_PIXELS to raise it)"
+        )
+    img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flags)
+    if img is None:
+        raise FormatError(f"{path}: cannot decode {what} (corrupt or unsupported format)")
+    return img
+
+
+def read_image(path: str | os.PathLike) -> np.ndarray:
+    """Read a PNG/JPEG colour image.
+
+    Returns
+    -------
+    (H, W, 3) uint8
+        RGB (not OpenCV's BGR). Grey images are replicated to three channels; 16-bit
+        images are refused (they are usually depth maps given in the wrong place).
+    """
+    import cv2
+
+    path = Path(path)
+    img = _decode(_read_bytes(path, "image"), path, "image", cv2.IMREAD_UNCHANGED)
+    if img.dtype != np.uint8:
+        raise FormatError(
+            f"{path}: {img.dtype} image, expected 8-bit RGB (is this a depth map?)"
+        )
+    if img.ndim == 2:
+        return np.repeat(img[:, :, None], 3, axis=2)
+    if img.shape[2] == 4:
+        img = img[:, :, :3]
+    elif img.shape[2] != 3:
+        raise FormatError(f"{path}: {img.shape[2]}-channel image, expected RGB")
+    return np.ascontiguousarray(img[:, :, ::-1])
+
+
+def write_image(path: str | os.PathLike, rgb: np.ndarray, *, overwrite: bool = True) -> None:
+    """Write an (H, W, 3) uint8 RGB image (PNG or JPEG by suffix), atomically."""
+    import cv2
+
+    rgb = np.asarray(rgb)
+    if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise ParameterError(f"expected (H, W, 3) uint8 RGB, got {rgb.dtype} {rgb.shape}")
+    ext = Path(path).suffix.lower() or ".png"
+    ok, buf = cv2.imencode(ext, np.ascontiguousarray(rgb[:, :, ::-1]))
+    if not ok:
+        raise FormatError(f"{path}: OpenCV cannot encode '{ext}'")
+    with atomic_path(path, overwrite=overwrite) as tmp:
+        tmp.write_bytes(buf.tobytes())
+
+
+def encode_depth_png(depth: np.ndarray) -> tuple[bytes, int]:
+    """Encode metres as a KITTI depth PNG.
+
+    Parameters
+    ----------
+    depth : (H, W) float, metres
+        0, negative or non-finite = no measurement.
+
+    Returns
+    -------
+    png : bytes
+    clipped : int
+        Valid pixels whose value fell outside [1, 65535] (depth >= 256 m or < 1/512 m)
+        and were clipped into it.
+    """
+    import cv2
+
+    depth = np.asarray(depth)
+    if depth.ndim != 2:
+        raise ParameterError(f"depth must be (H, W), got shape {depth.shape}")
+    d = depth.astype(np.float64)
+    valid = np.isfinite(d) & (d > 0)
+    scaled = np.rint(np.where(valid, d, 0.0) * DEPTH_SCALE)
+    clipped = int(np.count_nonzero(valid & ((scaled < 1) | (scaled > 65535))))
+    out = np.where(valid, np.clip(scaled, 1, 65535), 0).astype(np.uint16)
+    ok, buf = cv2.imencode(".png", out)
+    if not ok:  # pragma: no cover - OpenCV always encodes uint16 PNG
+        raise FormatError("OpenCV failed to encode a depth PNG")
+    return buf.tobytes(), clipped
+
+
+def write_depth_png(path: str | os.PathLike, depth: np.ndarray, *, overwrite: bool = True) -> int:
+    """Write a KITTI-convention depth PNG (uint16, depth * 256, 0 = invalid), atomically.
+
+    Returns the number of clipped pixels (depth >= 256 m cannot be stored); a warning is
+    logged when it is not zero.
+    """
+    data, clipped = encode_depth_png(depth)
+    if clipped:
+        log.warning("%s: %d pixel(s) clipped to the uint16 range (depth >= 256 m)", path, clipped)
+    with atomic_path(path, overwrite=overwrite) as tmp:
+        tmp.write_bytes(data)
+    return clipped
+
+
+def decode_depth_png(data: bytes, *, source: str = "depth PNG") -> np.ndarray:
+    """Decode KITTI depth PNG bytes to (H, W) float32 metres (0 = no measurement)."""
+    import cv2
+
+    img = _decode(data, Path(source), "depth PNG", cv2.IMREAD_UNCHANGED)
+    if img.ndim != 2:
+        raise FormatError(
+            f"{source}: {img.shape[2]}-channel image, a depth PNG is single-channel uint16"
+        )
+    if img.dtype != np.uint16:
+        raise FormatError(
+            f"{source}: {img.dtype} PNG, a KITTI depth PNG is uint16 (value = depth * 256); "
+            "8-bit files cannot hold metric depth"
+        )
+    peak = int(img.max()) if img.size else 0
+    if 0 < peak <= 255:
+        log.warning("%s: every depth is below 1 m (max value %d): is this really depth * 256?", source, peak)
+    return img.astype(np.float32) / np.float32(DEPTH_SCALE)
+
+
+def read_depth_png(path: str | os.PathLike) -> np.ndarray:
+    """Read a KITTI-convention depth PNG.
+
+    Returns
+    -------
+    (H, W) float32
+        Depth in metres, 0 where there is no measurement.
+
+    Raises
+    ------
+    FormatError
+        Missing, corrupt, 8-bit or multi-channel files.
+    """
+    path = Path(path)
+    return decode_depth_png(_read_bytes(path, "depth PNG"), source=str(path))

@@ -1,0 +1,1 @@
+"""Pure array kernels (numpy + numba): no file I/O, no click, no torch."""
