@@ -13,7 +13,6 @@ fast and pulls in neither numba, Open3D nor torch::
 from __future__ import annotations
 
 import importlib
-from typing import TYPE_CHECKING
 
 from ._version import __version__
 from .errors import SparsetoolsError
@@ -48,13 +47,3 @@ def __getattr__(name: str):
 
 def __dir__():
     return sorted(set(globals()) | set(_LAZY))
-
-
-if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
-    from .calibration import Calibration
-    from .io.calib import load_calibration
-    from .io.image import read_depth_png, read_image, write_depth_png, write_image
-    from .io.nuscenes import read_radar_pcd, write_radar_pcd
-    from .io.pointcloud import read_points, write_points
-    from .pipeline import run_frames
-    from .random import frame_rng

@@ -89,8 +89,12 @@ def cli(ctx, verbose, quiet, debug):
       sparsetools beams out/scene/velodyne --n 4 -o out/beams4
     Every command has --help with a worked example.
     """
-    level = logging.ERROR if quiet else (logging.WARNING, logging.INFO, logging.DEBUG)[min(verbose, 2)]
-    logging.basicConfig(level=level, format="%(levelname)s: %(message)s", stream=sys.stderr, force=True)
+    level = (
+        logging.ERROR if quiet else (logging.WARNING, logging.INFO, logging.DEBUG)[min(verbose, 2)]
+    )
+    logging.basicConfig(
+        level=level, format="%(levelname)s: %(message)s", stream=sys.stderr, force=True
+    )
     ctx.ensure_object(dict)
     ctx.obj["quiet"] = quiet
     ctx.obj["debug"] = debug

@@ -68,14 +68,20 @@ def int_list(ctx, param, value):
 
 def output_dir_option(f):
     return click.option(
-        "-o", "--out", "out_dir", required=True, type=click.Path(path_type=Path),
+        "-o",
+        "--out",
+        "out_dir",
+        required=True,
+        type=click.Path(path_type=Path),
         help="Output folder (created; existing complete outputs are skipped unless --overwrite).",
     )(f)
 
 
 def image_size_option(f):
     return click.option(
-        "--image-size", callback=size_wxh, metavar="WxH",
+        "--image-size",
+        callback=size_wxh,
+        metavar="WxH",
         help="Image size when the calibration does not hold it (e.g. 1242x375).",
     )(f)
 
@@ -83,19 +89,39 @@ def image_size_option(f):
 def batch_options(f):
     """--workers, --overwrite, --on-error, --executor, --dask-scheduler, --json."""
     decorators = [
-        click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
-                     help="Frames processed in parallel (local processes or Dask workers)."),
-        click.option("--overwrite", is_flag=True,
-                     help="Recompute and replace outputs that already exist."),
-        click.option("--on-error", type=click.Choice(["stop", "skip"]), default="stop",
-                     show_default=True,
-                     help="Stop at the first bad frame, or skip it, list it and go on (exit 1)."),
-        click.option("--executor", type=click.Choice(["local", "dask"]), default="local",
-                     show_default=True, help="Run frames in local processes or on a Dask cluster."),
-        click.option("--dask-scheduler", metavar="ADDRESS", default=None,
-                     help="Dask scheduler address (default: start a local cluster)."),
-        click.option("--json", "as_json", is_flag=True,
-                     help="Print the summary as JSON on stdout."),
+        click.option(
+            "--workers",
+            type=click.IntRange(min=1),
+            default=1,
+            show_default=True,
+            help="Frames processed in parallel (local processes or Dask workers).",
+        ),
+        click.option(
+            "--overwrite", is_flag=True, help="Recompute and replace outputs that already exist."
+        ),
+        click.option(
+            "--on-error",
+            type=click.Choice(["stop", "skip"]),
+            default="stop",
+            show_default=True,
+            help="Stop at the first bad frame, or skip it, list it and go on (exit 1).",
+        ),
+        click.option(
+            "--executor",
+            type=click.Choice(["local", "dask"]),
+            default="local",
+            show_default=True,
+            help="Run frames in local processes or on a Dask cluster.",
+        ),
+        click.option(
+            "--dask-scheduler",
+            metavar="ADDRESS",
+            default=None,
+            help="Dask scheduler address (default: start a local cluster).",
+        ),
+        click.option(
+            "--json", "as_json", is_flag=True, help="Print the summary as JSON on stdout."
+        ),
     ]
     return functools.reduce(lambda acc, d: d(acc), reversed(decorators), f)
 
@@ -104,7 +130,8 @@ def executor_from(params: dict):
     from ..pipeline import make_executor
 
     return make_executor(
-        params.get("executor", "local"), workers=params.get("workers", 1),
+        params.get("executor", "local"),
+        workers=params.get("workers", 1),
         scheduler=params.get("dask_scheduler"),
     )
 

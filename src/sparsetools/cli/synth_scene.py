@@ -12,12 +12,28 @@ from .options import emit_summary, size_wxh
 @click.command("synth-scene")
 @click.argument("out_dir", type=click.Path(path_type=Path))
 @click.option("--seed", type=int, default=0, show_default=True, help="Scene layout and noise seed.")
-@click.option("--frames", type=click.IntRange(min=1), default=3, show_default=True,
-              help="Street frames (one sequence; the ego drives ~1 m per frame).")
-@click.option("--image-size", callback=size_wxh, default="1242x375", show_default=True,
-              metavar="WxH", help="Camera resolution (intrinsics scale with it).")
-@click.option("--underwater-frames", type=click.IntRange(min=0), default=40, show_default=True,
-              help="Frames of the underwater sequence (0 = none).")
+@click.option(
+    "--frames",
+    type=click.IntRange(min=1),
+    default=3,
+    show_default=True,
+    help="Street frames (one sequence; the ego drives ~1 m per frame).",
+)
+@click.option(
+    "--image-size",
+    callback=size_wxh,
+    default="1242x375",
+    show_default=True,
+    metavar="WxH",
+    help="Camera resolution (intrinsics scale with it).",
+)
+@click.option(
+    "--underwater-frames",
+    type=click.IntRange(min=0),
+    default=40,
+    show_default=True,
+    help="Frames of the underwater sequence (0 = none).",
+)
 @click.option("--overwrite", is_flag=True, help="Replace existing files in OUT_DIR.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 def synth_scene(out_dir, seed, frames, image_size, underwater_frames, overwrite, as_json):
@@ -37,7 +53,12 @@ def synth_scene(out_dir, seed, frames, image_size, underwater_frames, overwrite,
 
     width, height = image_size
     summary = generate_scene(
-        out_dir, seed=seed, frames=frames, width=width, height=height,
-        underwater_frames=underwater_frames, overwrite=overwrite,
+        out_dir,
+        seed=seed,
+        frames=frames,
+        width=width,
+        height=height,
+        underwater_frames=underwater_frames,
+        overwrite=overwrite,
     )
     emit_summary(summary, as_json=as_json, title=f"synthetic scene written to {out_dir}")

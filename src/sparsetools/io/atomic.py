@@ -44,7 +44,9 @@ def atomic_path(path: str | os.PathLike, *, overwrite: bool = True) -> Iterator[
     except PermissionError as exc:
         raise OutputError(f"cannot create output folder {parent}: permission denied") from exc
     try:
-        fd, tmp_name = tempfile.mkstemp(prefix=TMP_PREFIX, suffix="".join(path.suffixes), dir=parent)
+        fd, tmp_name = tempfile.mkstemp(
+            prefix=TMP_PREFIX, suffix="".join(path.suffixes), dir=parent
+        )
     except PermissionError as exc:
         raise OutputError(f"output folder {parent} is not writable") from exc
     except OSError as exc:
@@ -53,7 +55,7 @@ def atomic_path(path: str | os.PathLike, *, overwrite: bool = True) -> Iterator[
     tmp = Path(tmp_name)
     try:
         yield tmp
-        if not tmp.exists() or tmp.stat().st_size == 0 and not _allow_empty(path):
+        if not tmp.exists() or (tmp.stat().st_size == 0 and not _allow_empty(path)):
             raise OutputError(f"writing {path} produced no data")
         os.replace(tmp, path)
     except BaseException:

@@ -24,9 +24,9 @@ from .atomic import atomic_path
 __all__ = [
     "load_calibration",
     "read_json_calib",
+    "read_key_value_file",
     "read_kitti_object_calib",
     "read_kitti_raw_calib",
-    "read_key_value_file",
     "write_json_calib",
     "write_kitti_object_calib",
 ]
@@ -120,7 +120,9 @@ def read_kitti_raw_calib(folder: str | os.PathLike, *, camera: int = 2) -> Calib
     v2c = folder / "calib_velo_to_cam.txt"
     for f in (c2c, v2c):
         if not f.is_file():
-            raise CalibrationError(f"{folder}: missing {f.name} (a KITTI raw calib folder holds both)")
+            raise CalibrationError(
+                f"{folder}: missing {f.name} (a KITTI raw calib folder holds both)"
+            )
     cam = read_key_value_file(c2c)
     velo = read_key_value_file(v2c)
     P = _matrix(cam, f"P_rect_0{camera}", (3, 4), c2c)
@@ -131,7 +133,11 @@ def read_kitti_raw_calib(folder: str | os.PathLike, *, camera: int = 2) -> Calib
     K = _split_projection(P, c2c)
     T = _homogeneous(R_rect) @ _homogeneous(np.hstack([R, t]))
     return Calibration(
-        K=K, T_cam_from_sensor=T, P=P, width=int(round(S[0])), height=int(round(S[1])),
+        K=K,
+        T_cam_from_sensor=T,
+        P=P,
+        width=int(round(S[0])),
+        height=int(round(S[1])),
         source=str(folder),
     )
 
@@ -173,10 +179,17 @@ def read_json_calib(path: str | os.PathLike, *, camera: str | int | None = None)
     K = _as_array(d, "K", (3, 3), path)
     T = _as_array(d, "T_cam_from_sensor", (4, 4), path)
     P = _as_array(d, "P", (3, 4), path) if d.get("P") is not None else None
-    extra = {k: v for k, v in d.items() if k not in {"K", "T_cam_from_sensor", "P", "width", "height"}}
+    extra = {
+        k: v for k, v in d.items() if k not in {"K", "T_cam_from_sensor", "P", "width", "height"}
+    }
     return Calibration(
-        K=K, T_cam_from_sensor=T, P=P, width=d.get("width"), height=d.get("height"),
-        source=str(path), extra=extra,
+        K=K,
+        T_cam_from_sensor=T,
+        P=P,
+        width=d.get("width"),
+        height=d.get("height"),
+        source=str(path),
+        extra=extra,
     )
 
 
@@ -237,14 +250,18 @@ def load_calibration(
         raise CalibrationError(f"{p}: no such calibration file or folder")
     if p.is_dir():
         if (p / "calib_cam_to_cam.txt").exists() or (p / "calib_velo_to_cam.txt").exists():
-            calib = read_kitti_raw_calib(p, camera=int(camera) if not isinstance(camera, str) else 2)
+            calib = read_kitti_raw_calib(
+                p, camera=int(camera) if not isinstance(camera, str) else 2
+            )
         else:
             raise CalibrationError(
                 f"{p}: folder holds no calib_cam_to_cam.txt / calib_velo_to_cam.txt "
                 "(for per-frame calib files pass the file, or a folder to a batch command)"
             )
     elif p.name in ("calib_cam_to_cam.txt", "calib_velo_to_cam.txt"):
-        calib = read_kitti_raw_calib(p.parent, camera=int(camera) if not isinstance(camera, str) else 2)
+        calib = read_kitti_raw_calib(
+            p.parent, camera=int(camera) if not isinstance(camera, str) else 2
+        )
     elif p.suffix.lower() == ".json":
         calib = read_json_calib(p, camera=camera)
     elif p.suffix.lower() == ".txt":

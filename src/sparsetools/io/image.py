@@ -100,9 +100,7 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     path = Path(path)
     img = _decode(_read_bytes(path, "image"), path, "image", cv2.IMREAD_UNCHANGED)
     if img.dtype != np.uint8:
-        raise FormatError(
-            f"{path}: {img.dtype} image, expected 8-bit RGB (is this a depth map?)"
-        )
+        raise FormatError(f"{path}: {img.dtype} image, expected 8-bit RGB (is this a depth map?)")
     if img.ndim == 2:
         return np.repeat(img[:, :, None], 3, axis=2)
     if img.shape[2] == 4:
@@ -188,7 +186,9 @@ def decode_depth_png(data: bytes, *, source: str = "depth PNG") -> np.ndarray:
         )
     peak = int(img.max()) if img.size else 0
     if 0 < peak <= 255:
-        log.warning("%s: every depth is below 1 m (max value %d): is this really depth * 256?", source, peak)
+        log.warning(
+            "%s: every depth is below 1 m (max value %d): is this really depth * 256?", source, peak
+        )
     return img.astype(np.float32) / np.float32(DEPTH_SCALE)
 
 

@@ -68,7 +68,9 @@ def read_velodyne_bin(path: str | os.PathLike, *, n_columns: int = 4) -> np.ndar
     return points
 
 
-def write_velodyne_bin(path: str | os.PathLike, points: np.ndarray, *, overwrite: bool = True) -> None:
+def write_velodyne_bin(
+    path: str | os.PathLike, points: np.ndarray, *, overwrite: bool = True
+) -> None:
     """Write ``points`` ((N, C) array) as little-endian float32 rows, atomically."""
     points = np.asarray(points)
     if points.ndim != 2:

@@ -37,8 +37,16 @@ RADAR_TYPES = tuple("F F F I I F F F F F I I I I I I I I".split())
 
 
 def _pcd_dtype(fields, sizes, types) -> np.dtype:
-    codes = {("F", 4): "<f4", ("F", 8): "<f8", ("I", 1): "i1", ("I", 2): "<i2", ("I", 4): "<i4",
-             ("U", 1): "u1", ("U", 2): "<u2", ("U", 4): "<u4"}
+    codes = {
+        ("F", 4): "<f4",
+        ("F", 8): "<f8",
+        ("I", 1): "i1",
+        ("I", 2): "<i2",
+        ("I", 4): "<i4",
+        ("U", 1): "u1",
+        ("U", 2): "<u2",
+        ("U", 4): "<u4",
+    }
     try:
         return np.dtype([(f, codes[(t, s)]) for f, s, t in zip(fields, sizes, types, strict=True)])
     except KeyError as exc:
@@ -135,7 +143,9 @@ def read_radar_pcd(
     except (KeyError, ValueError, IndexError) as exc:
         raise FormatError(f"{path}: PCD header misses or garbles FIELDS/SIZE/TYPE/POINTS") from exc
     if header["DATA"] != ["binary"]:
-        raise FormatError(f"{path}: PCD DATA '{' '.join(header['DATA'])}' unsupported (need binary)")
+        raise FormatError(
+            f"{path}: PCD DATA '{' '.join(header['DATA'])}' unsupported (need binary)"
+        )
     if fields != RADAR_FIELDS:
         raise FormatError(f"{path}: not a nuScenes radar PCD (fields {' '.join(fields)})")
     need = n * dtype.itemsize
@@ -180,11 +190,13 @@ def write_radar_pcd(path: str | os.PathLike, points: np.ndarray, *, overwrite: b
 def quaternion_to_matrix(q) -> np.ndarray:
     """Rotation matrix of a unit quaternion given as nuScenes does: [w, x, y, z]."""
     w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def _pose_matrix(record: dict) -> np.ndarray:
@@ -246,7 +258,9 @@ class NuScenesTables:
         try:
             return self._keyframe[(sample_token, channel)]
         except KeyError as exc:
-            raise FormatError(f"sample {sample_token} has no key frame for channel {channel}") from exc
+            raise FormatError(
+                f"sample {sample_token} has no key frame for channel {channel}"
+            ) from exc
 
     def sweeps(self, sample_data: dict, n: int) -> list[dict]:
         """``sample_data`` and up to ``n - 1`` previous sweeps of the same sensor (newest first)."""

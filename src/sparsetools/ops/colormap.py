@@ -7,7 +7,9 @@ import numpy as np
 __all__ = ["colorize_depth", "overlay_depth", "side_by_side"]
 
 
-def colorize_depth(depth: np.ndarray, *, max_depth: float = 80.0, min_depth: float = 0.0) -> np.ndarray:
+def colorize_depth(
+    depth: np.ndarray, *, max_depth: float = 80.0, min_depth: float = 0.0
+) -> np.ndarray:
     """Colour a depth map with the turbo colormap.
 
     Parameters
@@ -34,7 +36,11 @@ def colorize_depth(depth: np.ndarray, *, max_depth: float = 80.0, min_depth: flo
 
 
 def overlay_depth(
-    image: np.ndarray, depth: np.ndarray, *, max_depth: float = 80.0, dilate: int = 2,
+    image: np.ndarray,
+    depth: np.ndarray,
+    *,
+    max_depth: float = 80.0,
+    dilate: int = 2,
     dim: float = 0.6,
 ) -> np.ndarray:
     """Sparse depth coloured 0..``max_depth`` m over a dimmed copy of ``image``.

@@ -139,7 +139,9 @@ class LocalExecutor:
             yield from pool.map(fn, items, chunksize=chunksize)
 
 
-def make_executor(kind: str = "local", *, workers: int = 1, scheduler: str | None = None) -> Executor:
+def make_executor(
+    kind: str = "local", *, workers: int = 1, scheduler: str | None = None
+) -> Executor:
     """Executor by name: ``local`` (serial for 1 worker, else a process pool) or ``dask``."""
     if workers < 1:
         raise ParameterError(f"--workers must be >= 1, got {workers}")
