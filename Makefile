@@ -25,6 +25,7 @@ $(STAMP): pyproject.toml
 
 demo: setup
 	$(VENV)/bin/sparsetools demo --out out/demo
+	@echo "report: out/demo/report.md"
 
 test: setup
 	$(PY) -m pytest -q

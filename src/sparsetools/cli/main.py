@@ -30,7 +30,7 @@ COMMANDS = {
     "train": "train:train",
     "eval": "eval:eval_",
     "pipeline": "pipeline:pipeline",
-    "demo": "demo:demo",
+    "demo": "pipeline:demo",
 }
 
 

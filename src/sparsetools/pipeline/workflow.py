@@ -1,0 +1,220 @@
+"""Declarative multi-step runs: ``sparsetools pipeline CONFIG.yaml`` and ``make demo``.
+
+A config lists steps; each step is one ``sparsetools`` command line (as in a shell) run
+in-process, its stdout captured into ``OUT/report.md`` together with the pictures it names::
+
+    name: my run
+    vars:                          # ${name} is replaced everywhere; ${out} is the output folder
+      data: /data/kitti/2011_09_26/2011_09_26_drive_0001_sync
+    steps:
+      - name: project LiDAR
+        run: project ${data}/velodyne_points/data --calib ${data}/.. -o ${out}/depth
+        images: [${out}/depth_viz.png]
+      - name: beams
+        run: beams ${data}/velodyne_points/data --n 4 -o ${out}/beams4
+
+YAML (``.yaml``/``.yml``) and TOML (``.toml``, steps as ``[[steps]]``) are accepted. Steps run
+in order; every command resumes, so re-running a config after an interruption is cheap.
+A step fails the run (after writing the report so far) unless it has ``allow_failure: true``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import logging
+import os
+import re
+import shlex
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ..errors import FormatError, ParameterError, SparsetoolsError
+from ..io.atomic import atomic_path
+
+__all__ = ["Step", "StepResult", "Workflow", "load_workflow", "run_workflow"]
+
+log = logging.getLogger(__name__)
+
+_VAR = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)\}")
+
+
+@dataclass
+class Step:
+    name: str
+    run: list[str]
+    images: list[str] = field(default_factory=list)
+    allow_failure: bool = False
+    note: str = ""
+
+
+@dataclass
+class Workflow:
+    name: str
+    steps: list[Step]
+    source: str = ""
+    intro: str = ""
+
+
+@dataclass
+class StepResult:
+    step: Step
+    exit_code: int
+    stdout: str
+    stderr: str
+    seconds: float
+
+
+def _substitute(value: str, variables: dict[str, str], where: str) -> str:
+    def repl(m):
+        key = m.group(1)
+        if key not in variables:
+            raise ParameterError(f"{where}: unknown variable ${{{key}}}")
+        return variables[key]
+
+    # Variables may refer to other variables: a few passes settle them.
+    for _ in range(5):
+        new = _VAR.sub(repl, value)
+        if new == value:
+            break
+        value = new
+    return value
+
+
+def load_workflow(path: str | os.PathLike, *, out_dir: str | os.PathLike, overrides: dict | None = None) -> Workflow:
+    """Read a YAML/TOML workflow config, substituting ``${vars}`` (``out`` = ``out_dir``)."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError as exc:
+        raise FormatError(f"{path}: no such pipeline config") from exc
+    except (OSError, UnicodeDecodeError) as exc:
+        raise FormatError(f"{path}: cannot read the pipeline config ({exc})") from exc
+    try:
+        if path.suffix.lower() == ".toml":
+            import tomllib
+
+            cfg = tomllib.loads(text)
+        elif path.suffix.lower() in (".yaml", ".yml"):
+            import yaml
+
+            cfg = yaml.safe_load(text)
+        else:
+            raise FormatError(f"{path}: pipeline config must be .yaml, .yml or .toml")
+    except FormatError:
+        raise
+    except Exception as exc:  # yaml.YAMLError / tomllib.TOMLDecodeError carry line numbers
+        raise FormatError(f"{path}: invalid config ({str(exc).splitlines()[0]})") from exc
+    if not isinstance(cfg, dict) or not isinstance(cfg.get("steps"), list) or not cfg["steps"]:
+        raise FormatError(f"{path}: config needs a non-empty 'steps' list")
+    variables = {str(k): str(v) for k, v in (cfg.get("vars") or {}).items()}
+    variables.update({str(k): str(v) for k, v in (overrides or {}).items()})
+    variables["out"] = str(out_dir)
+    variables.setdefault("config_dir", str(path.parent))
+    steps = []
+    for i, raw in enumerate(cfg["steps"]):
+        where = f"{path}: step {i + 1}"
+        if not isinstance(raw, dict) or "run" not in raw:
+            raise FormatError(f"{where}: each step needs a 'run' command line")
+        run = raw["run"]
+        run = shlex.split(run) if isinstance(run, str) else [str(a) for a in run]
+        run = [_substitute(a, variables, where) for a in run]
+        if run and run[0] == "sparsetools":
+            run = run[1:]
+        images = [_substitute(str(im), variables, where) for im in raw.get("images", [])]
+        steps.append(
+            Step(
+                name=str(raw.get("name", run[0] if run else f"step {i + 1}")),
+                run=run,
+                images=images,
+                allow_failure=bool(raw.get("allow_failure", False)),
+                note=_substitute(str(raw.get("note", "")), variables, where),
+            )
+        )
+    return Workflow(
+        name=str(cfg.get("name", path.stem)), steps=steps, source=str(path),
+        intro=_substitute(str(cfg.get("intro", "")), variables, str(path)),
+    )
+
+
+def _run_step(step: Step) -> StepResult:
+    from ..cli.main import cli
+
+    out, err = io.StringIO(), io.StringIO()
+    t0 = time.perf_counter()
+    code = 0
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            cli.main(args=["-q", *step.run], prog_name="sparsetools", standalone_mode=False)
+        except SystemExit as exc:  # ctx.exit() inside commands
+            code = int(exc.code or 0)
+        except SparsetoolsError as exc:
+            err.write(f"Error: {exc}\n")
+            code = 1
+        except Exception as exc:  # click usage errors and anything unexpected
+            msg = exc.format_message() if hasattr(exc, "format_message") else str(exc)
+            err.write(f"Error: {msg}\n")
+            code = getattr(exc, "exit_code", 1) or 1
+    return StepResult(step, code, out.getvalue(), err.getvalue(), time.perf_counter() - t0)
+
+
+def run_workflow(
+    workflow: Workflow, out_dir: str | os.PathLike, *, only: list[str] | None = None, echo=print
+) -> list[StepResult]:
+    """Run the steps in order and write ``OUT/report.md``; raise on the first failing step."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    results: list[StepResult] = []
+    failed: StepResult | None = None
+    for step in workflow.steps:
+        if only and step.name not in only:
+            continue
+        echo(f"[{len(results) + 1}/{len(workflow.steps)}] {step.name}: sparsetools {shlex.join(step.run)}")
+        res = _run_step(step)
+        results.append(res)
+        echo(f"    -> exit {res.exit_code} in {res.seconds:.1f} s")
+        if res.exit_code != 0 and not step.allow_failure:
+            failed = res
+            break
+    write_report(workflow, results, out / "report.md")
+    (out / "steps.json").write_text(
+        json.dumps(
+            [{"name": r.step.name, "run": r.step.run, "exit_code": r.exit_code,
+              "seconds": round(r.seconds, 2)} for r in results],
+            indent=1,
+        )
+    )
+    if failed is not None:
+        last = (failed.stderr.strip().splitlines() or ["(no message)"])[-1]
+        raise ParameterError(f"step '{failed.step.name}' failed (exit {failed.exit_code}): {last}")
+    return results
+
+
+def write_report(workflow: Workflow, results: list[StepResult], path: Path) -> None:
+    """Markdown report: one section per step with its command, output and pictures."""
+    lines = [f"# {workflow.name}", ""]
+    if workflow.intro:
+        lines += [workflow.intro.strip(), ""]
+    lines += [f"Config: `{workflow.source}`", "", "| step | exit | seconds |", "| --- | --- | --- |"]
+    lines += [f"| {r.step.name} | {r.exit_code} | {r.seconds:.1f} |" for r in results]
+    lines.append("")
+    for r in results:
+        lines += [f"## {r.step.name}", "", "```", f"sparsetools {shlex.join(r.step.run)}", "```", ""]
+        if r.step.note:
+            lines += [r.step.note.strip(), ""]
+        if r.stdout.strip():
+            lines += ["```", r.stdout.rstrip(), "```", ""]
+        if r.exit_code != 0 and r.stderr.strip():
+            lines += ["Error output:", "", "```", r.stderr.rstrip(), "```", ""]
+        for im in r.step.images:
+            p = Path(im)
+            if p.exists():
+                try:
+                    rel = os.path.relpath(p, path.parent)
+                except ValueError:
+                    rel = str(p)
+                lines += [f"![{p.stem}]({rel})", ""]
+    with atomic_path(path) as tmp:
+        tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
