@@ -410,3 +410,20 @@ def test_remove_stale_temporaries(tmp_path):
     (tmp_path / "keep.png").write_bytes(b"x")
     assert remove_stale_temporaries(tmp_path) == 1
     assert [p.name for p in tmp_path.iterdir()] == ["keep.png"]
+
+
+def test_radar_writer_refuses_out_of_range_integer_fields(tmp_path):
+    pts = _radar(3)
+    pts[0, 3] = 300  # dyn_prop is int8
+    with pytest.raises(FormatError, match="dyn_prop"):
+        write_radar_pcd(tmp_path / "r.pcd", pts)
+    assert not (tmp_path / "r.pcd").exists()
+
+
+def test_atomic_outputs_get_normal_permissions(tmp_path):
+    old = os.umask(0o022)
+    try:
+        write_velodyne_bin(tmp_path / "a.bin", _cloud(2))
+    finally:
+        os.umask(old)
+    assert (tmp_path / "a.bin").stat().st_mode & 0o777 == 0o644

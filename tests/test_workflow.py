@@ -31,7 +31,9 @@ def test_variables_and_both_run_forms(tmp_path):
 
 
 def test_toml_config(tmp_path):
-    (tmp_path / "c.toml").write_text('name = "t"\n[[steps]]\nname = "a"\nrun = "synth-scene ${out}/x"\n')
+    (tmp_path / "c.toml").write_text(
+        'name = "t"\n[[steps]]\nname = "a"\nrun = "synth-scene ${out}/x"\n'
+    )
     wf = load_workflow(tmp_path / "c.toml", out_dir="O")
     assert wf.steps[0].run == ["synth-scene", "O/x"]
 
@@ -66,6 +68,8 @@ def test_run_writes_report_and_stops_at_failure(tmp_path):
 
 
 def test_cli_pipeline_missing_config_is_one_line(tmp_path):
-    r = CliRunner().invoke(cli, ["pipeline", str(tmp_path / "none.yaml"), "-o", str(tmp_path / "o")])
+    r = CliRunner().invoke(
+        cli, ["pipeline", str(tmp_path / "none.yaml"), "-o", str(tmp_path / "o")]
+    )
     assert r.exit_code == 1
     assert r.stderr.strip().startswith("Error:") and len(r.stderr.strip().splitlines()) == 1

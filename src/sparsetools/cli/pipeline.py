@@ -29,10 +29,22 @@ def _run(config: Path, out_dir: Path, overrides: dict, only: tuple[str, ...]) ->
 
 @click.command("pipeline")
 @click.argument("config", type=click.Path(path_type=Path))
-@click.option("-o", "--out", "out_dir", type=click.Path(path_type=Path), required=True,
-              help="Output folder; ${out} in the config.")
-@click.option("--set", "overrides", multiple=True, callback=_overrides, metavar="KEY=VALUE",
-              help="Override a config variable (repeatable), e.g. --set data=/data/kitti.")
+@click.option(
+    "-o",
+    "--out",
+    "out_dir",
+    type=click.Path(path_type=Path),
+    required=True,
+    help="Output folder; ${out} in the config.",
+)
+@click.option(
+    "--set",
+    "overrides",
+    multiple=True,
+    callback=_overrides,
+    metavar="KEY=VALUE",
+    help="Override a config variable (repeatable), e.g. --set data=/data/kitti.",
+)
 @click.option("--only", multiple=True, metavar="STEP", help="Run only the named step(s).")
 def pipeline(config, out_dir, overrides, only):
     """Run the steps of a YAML/TOML CONFIG in order and write OUT/report.md.
@@ -50,10 +62,22 @@ def pipeline(config, out_dir, overrides, only):
 
 
 @click.command("demo")
-@click.option("-o", "--out", "out_dir", type=click.Path(path_type=Path), default=Path("out/demo"),
-              show_default=True, help="Output folder.")
-@click.option("--config", type=click.Path(path_type=Path), default=Path("sample_data/demo.yaml"),
-              show_default=True, help="The demo config (run from the repository root).")
+@click.option(
+    "-o",
+    "--out",
+    "out_dir",
+    type=click.Path(path_type=Path),
+    default=Path("out/demo"),
+    show_default=True,
+    help="Output folder.",
+)
+@click.option(
+    "--config",
+    type=click.Path(path_type=Path),
+    default=Path("sample_data/demo.yaml"),
+    show_default=True,
+    help="The demo config (run from the repository root).",
+)
 def demo(out_dir, config):
     """Run the whole pipeline on the bundled sample data (what `make demo` does).
 

@@ -57,11 +57,19 @@ def atomic_path(path: str | os.PathLike, *, overwrite: bool = True) -> Iterator[
         yield tmp
         if not tmp.exists() or (tmp.stat().st_size == 0 and not _allow_empty(path)):
             raise OutputError(f"writing {path} produced no data")
+        # mkstemp creates 0600 files; give outputs the usual permissions (0666 & ~umask).
+        os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
         raise
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 def _allow_empty(path: Path) -> bool:

@@ -175,7 +175,16 @@ def write_radar_pcd(path: str | os.PathLike, points: np.ndarray, *, overwrite: b
     rec = np.zeros(points.shape[0], dtype=RADAR_DTYPE)
     for i, f in enumerate(RADAR_FIELDS):
         col = points[:, i]
-        rec[f] = np.rint(col) if RADAR_DTYPE[f].kind == "i" else col
+        if RADAR_DTYPE[f].kind == "i":
+            col = np.rint(col)
+            info = np.iinfo(RADAR_DTYPE[f])
+            if col.size and (
+                not np.isfinite(col).all() or col.min() < info.min or col.max() > info.max
+            ):
+                raise FormatError(
+                    f"radar field '{f}' holds values outside {RADAR_DTYPE[f]} [{info.min}, {info.max}]"
+                )
+        rec[f] = col
     n = points.shape[0]
     header = (
         "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\n"

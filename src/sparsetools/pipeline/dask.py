@@ -39,7 +39,9 @@ class DaskExecutor:
         Frames per Dask task; default: about 4 tasks per worker, at most 32 frames.
     """
 
-    def __init__(self, *, workers: int = 1, scheduler: str | None = None, chunk_size: int | None = None):
+    def __init__(
+        self, *, workers: int = 1, scheduler: str | None = None, chunk_size: int | None = None
+    ):
         try:
             import distributed  # noqa: F401
         except ImportError as exc:
@@ -61,10 +63,15 @@ class DaskExecutor:
             try:
                 return Client(self.scheduler, timeout="10s"), None
             except (OSError, TimeoutError) as exc:
-                raise ParameterError(f"cannot reach the Dask scheduler at {self.scheduler}: {exc}") from exc
+                raise ParameterError(
+                    f"cannot reach the Dask scheduler at {self.scheduler}: {exc}"
+                ) from exc
         cluster = LocalCluster(
-            n_workers=self.workers, threads_per_worker=1, processes=True,
-            dashboard_address=None, silence_logs=logging.ERROR,
+            n_workers=self.workers,
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=None,
+            silence_logs=logging.ERROR,
         )
         return Client(cluster), cluster
 

@@ -83,7 +83,9 @@ def _substitute(value: str, variables: dict[str, str], where: str) -> str:
     return value
 
 
-def load_workflow(path: str | os.PathLike, *, out_dir: str | os.PathLike, overrides: dict | None = None) -> Workflow:
+def load_workflow(
+    path: str | os.PathLike, *, out_dir: str | os.PathLike, overrides: dict | None = None
+) -> Workflow:
     """Read a YAML/TOML workflow config, substituting ``${vars}`` (``out`` = ``out_dir``)."""
     path = Path(path)
     try:
@@ -134,7 +136,9 @@ def load_workflow(path: str | os.PathLike, *, out_dir: str | os.PathLike, overri
             )
         )
     return Workflow(
-        name=str(cfg.get("name", path.stem)), steps=steps, source=str(path),
+        name=str(cfg.get("name", path.stem)),
+        steps=steps,
+        source=str(path),
         intro=_substitute(str(cfg.get("intro", "")), variables, str(path)),
     )
 
@@ -171,7 +175,9 @@ def run_workflow(
     for step in workflow.steps:
         if only and step.name not in only:
             continue
-        echo(f"[{len(results) + 1}/{len(workflow.steps)}] {step.name}: sparsetools {shlex.join(step.run)}")
+        echo(
+            f"[{len(results) + 1}/{len(workflow.steps)}] {step.name}: sparsetools {shlex.join(step.run)}"
+        )
         res = _run_step(step)
         results.append(res)
         echo(f"    -> exit {res.exit_code} in {res.seconds:.1f} s")
@@ -181,8 +187,15 @@ def run_workflow(
     write_report(workflow, results, out / "report.md")
     (out / "steps.json").write_text(
         json.dumps(
-            [{"name": r.step.name, "run": r.step.run, "exit_code": r.exit_code,
-              "seconds": round(r.seconds, 2)} for r in results],
+            [
+                {
+                    "name": r.step.name,
+                    "run": r.step.run,
+                    "exit_code": r.exit_code,
+                    "seconds": round(r.seconds, 2),
+                }
+                for r in results
+            ],
             indent=1,
         )
     )
@@ -197,11 +210,23 @@ def write_report(workflow: Workflow, results: list[StepResult], path: Path) -> N
     lines = [f"# {workflow.name}", ""]
     if workflow.intro:
         lines += [workflow.intro.strip(), ""]
-    lines += [f"Config: `{workflow.source}`", "", "| step | exit | seconds |", "| --- | --- | --- |"]
+    lines += [
+        f"Config: `{workflow.source}`",
+        "",
+        "| step | exit | seconds |",
+        "| --- | --- | --- |",
+    ]
     lines += [f"| {r.step.name} | {r.exit_code} | {r.seconds:.1f} |" for r in results]
     lines.append("")
     for r in results:
-        lines += [f"## {r.step.name}", "", "```", f"sparsetools {shlex.join(r.step.run)}", "```", ""]
+        lines += [
+            f"## {r.step.name}",
+            "",
+            "```",
+            f"sparsetools {shlex.join(r.step.run)}",
+            "```",
+            "",
+        ]
         if r.step.note:
             lines += [r.step.note.strip(), ""]
         if r.stdout.strip():

@@ -1,0 +1,681 @@
+"""The sparsetools training dataset on disk: Parquet manifest, PNG files, Parquet sparse points.
+
+Layout (METHODS.md section 6; docs/dataset.md has the full schema table)::
+
+    DATASET/
+      manifest.parquet          one row per sample (schema: MANIFEST_SCHEMA)
+      rgb/<id>.png|.jpg         camera images, copied byte for byte (or hard-linked)
+      sparse/<id>.png           sparse depth, KITTI uint16 PNG (--sparse-format png|both)
+      sparse/part-00000.parquet sparse depth as points, one row per frame (parquet|both)
+      gt/<id>.png|.npy          ground-truth depth (optional)
+      confidence/<id>.png|.npy  confidence map, e.g. jbf-expand's (optional)
+
+Every path stored in the manifest is relative to ``DATASET``, uses ``/`` and may not be
+absolute or contain ``..``: :func:`check_relative_path` rejects such a path when the manifest
+is written and when it is read, and :func:`resolve_in_dataset` also refuses a path that a
+symbolic link takes outside the dataset.
+
+The schema version is stored in the Parquet key-value metadata under
+``sparsetools.schema_version``; readers refuse a newer major version.
+"""
+
+from __future__ import annotations
+
+import bisect
+import hashlib
+import json
+import os
+from collections import OrderedDict
+from collections.abc import Iterator, Sequence
+from pathlib import Path, PurePosixPath
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from ..errors import FormatError, ParameterError
+from .atomic import atomic_path
+from .image import decode_depth_png, read_depth_png, read_image
+
+__all__ = [
+    "MANIFEST_NAME",
+    "MANIFEST_SCHEMA",
+    "METADATA_INFO_KEY",
+    "METADATA_VERSION_KEY",
+    "PART_SCHEMA",
+    "SCHEMA_VERSION",
+    "SPARSE_DIR",
+    "DatasetReader",
+    "bytes_sha256",
+    "check_relative_path",
+    "decode_depth_bytes",
+    "depth_to_points",
+    "file_sha256",
+    "points_sha256",
+    "points_to_depth",
+    "read_confidence_file",
+    "read_depth_file",
+    "read_manifest",
+    "read_sparse_part",
+    "resolve_in_dataset",
+    "write_manifest",
+    "write_sparse_part",
+]
+
+#: Version of the manifest / part layout. Bump on any incompatible change.
+SCHEMA_VERSION = 1
+MANIFEST_NAME = "manifest.parquet"
+SPARSE_DIR = "sparse"
+METADATA_VERSION_KEY = b"sparsetools.schema_version"
+METADATA_INFO_KEY = b"sparsetools.dataset"
+#: uint16 pixel coordinates bound the image size of the Parquet sparse format.
+MAX_SIDE = 65535
+
+MANIFEST_SCHEMA = pa.schema(
+    [
+        pa.field("id", pa.string(), nullable=False),
+        pa.field("sequence", pa.string(), nullable=False),
+        pa.field("frame", pa.string(), nullable=False),
+        pa.field("split", pa.string()),
+        pa.field("width", pa.int32(), nullable=False),
+        pa.field("height", pa.int32(), nullable=False),
+        pa.field("fx", pa.float64()),
+        pa.field("fy", pa.float64()),
+        pa.field("cx", pa.float64()),
+        pa.field("cy", pa.float64()),
+        pa.field("rgb_path", pa.string(), nullable=False),
+        pa.field("sparse_path", pa.string()),
+        pa.field("sparse_parquet", pa.string()),
+        pa.field("sparse_row", pa.int32()),
+        pa.field("gt_path", pa.string()),
+        pa.field("confidence_path", pa.string()),
+        pa.field("n_sparse", pa.int64(), nullable=False),
+        pa.field("density", pa.float64(), nullable=False),
+        pa.field("n_gt", pa.int64()),
+        pa.field("source", pa.string()),
+        pa.field("rgb_sha256", pa.string(), nullable=False),
+        pa.field("sparse_sha256", pa.string()),
+        pa.field("sparse_points_sha256", pa.string()),
+        pa.field("gt_sha256", pa.string()),
+        pa.field("confidence_sha256", pa.string()),
+        pa.field("generation_params", pa.string()),
+    ]
+)
+
+PART_SCHEMA = pa.schema(
+    [
+        pa.field("id", pa.string(), nullable=False),
+        pa.field("u", pa.list_(pa.uint16()), nullable=False),
+        pa.field("v", pa.list_(pa.uint16()), nullable=False),
+        pa.field("depth", pa.list_(pa.float32()), nullable=False),
+        pa.field("height", pa.int32(), nullable=False),
+        pa.field("width", pa.int32(), nullable=False),
+    ]
+)
+
+PATH_COLUMNS = ("rgb_path", "sparse_path", "sparse_parquet", "gt_path", "confidence_path")
+
+
+# -- paths -------------------------------------------------------------------------------------
+def check_relative_path(rel: str, *, what: str = "path") -> str:
+    """Validate a dataset-relative path and return it.
+
+    A valid path is a non-empty ``/``-separated relative path whose components are neither
+    empty, ``.`` nor ``..``, without backslashes, NUL bytes or a drive letter.
+
+    Raises
+    ------
+    FormatError
+        For anything that could point outside the dataset.
+    """
+    if not isinstance(rel, str) or not rel:
+        raise FormatError(f"{what}: empty or non-string path in the dataset")
+    bad = (
+        rel.startswith("/")
+        or "\\" in rel
+        or "\x00" in rel
+        or (len(rel) >= 2 and rel[1] == ":")
+        or any(part in ("", ".", "..") for part in rel.split("/"))
+    )
+    if bad:
+        raise FormatError(
+            f"{what}: path {rel!r} is not a plain relative path inside the dataset "
+            "(absolute paths and '..' are refused)"
+        )
+    return rel
+
+
+def resolve_in_dataset(root: str | os.PathLike, rel: str, *, what: str = "path") -> Path:
+    """``root / rel`` after :func:`check_relative_path`, refusing symlinks that leave ``root``."""
+    check_relative_path(rel, what=what)
+    root = Path(root)
+    path = root.joinpath(*PurePosixPath(rel).parts)
+    real_root = os.path.realpath(root)
+    real = os.path.realpath(path)
+    if real != real_root and not real.startswith(real_root.rstrip(os.sep) + os.sep):
+        raise FormatError(f"{what}: {rel!r} resolves outside the dataset (symbolic link?)")
+    return path
+
+
+# -- hashing -----------------------------------------------------------------------------------
+def bytes_sha256(data: bytes) -> str:
+    """Hex SHA-256 of ``data``."""
+    return hashlib.sha256(data).hexdigest()
+
+
+def file_sha256(path: str | os.PathLike, *, chunk: int = 1 << 20) -> str:
+    """Hex SHA-256 of a file's bytes, read in chunks."""
+    h = hashlib.sha256()
+    try:
+        with open(path, "rb") as f:
+            while block := f.read(chunk):
+                h.update(block)
+    except OSError as exc:
+        raise FormatError(f"{path}: cannot read ({exc.strerror or exc})") from exc
+    return h.hexdigest()
+
+
+def points_sha256(u: np.ndarray, v: np.ndarray, depth: np.ndarray) -> str:
+    """SHA-256 identifying a frame's sparse points.
+
+    The digest is over the little-endian bytes of ``u`` (uint16), then ``v`` (uint16), then
+    ``depth`` (float32), in stored order; it is what ``sparse_points_sha256`` holds.
+    """
+    h = hashlib.sha256()
+    h.update(np.ascontiguousarray(u, dtype="<u2").tobytes())
+    h.update(np.ascontiguousarray(v, dtype="<u2").tobytes())
+    h.update(np.ascontiguousarray(depth, dtype="<f4").tobytes())
+    return h.hexdigest()
+
+
+# -- depth maps <-> points -----------------------------------------------------------------------
+def depth_to_points(depth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The valid pixels of a depth map as (u, v, depth) arrays.
+
+    Parameters
+    ----------
+    depth : (H, W) float32, metres
+        0 = no measurement. Must already be cleaned (no negative or non-finite values).
+
+    Returns
+    -------
+    u, v : (N,) uint16
+        Column and row of each valid pixel, row-major order.
+    depth : (N,) float32
+        The stored values, bit for bit.
+    """
+    depth = np.asarray(depth)
+    if depth.ndim != 2:
+        raise ParameterError(f"depth must be (H, W), got shape {depth.shape}")
+    if max(depth.shape) > MAX_SIDE:
+        raise ParameterError(f"depth maps larger than {MAX_SIDE} px cannot use uint16 pixels")
+    v, u = np.nonzero(depth)
+    return u.astype(np.uint16), v.astype(np.uint16), depth[v, u].astype(np.float32)
+
+
+def points_to_depth(
+    u: np.ndarray, v: np.ndarray, depth: np.ndarray, height: int, width: int
+) -> np.ndarray:
+    """Rebuild the (H, W) float32 depth map from (u, v, depth); 0 elsewhere.
+
+    Raises :class:`FormatError` for mismatched lengths or pixels outside the image.
+    """
+    u = np.asarray(u)
+    v = np.asarray(v)
+    depth = np.asarray(depth, dtype=np.float32)
+    if not (u.shape == v.shape == depth.shape) or u.ndim != 1:
+        raise FormatError(
+            f"sparse points: u, v, depth lengths differ ({u.size}, {v.size}, {depth.size})"
+        )
+    out = np.zeros((int(height), int(width)), dtype=np.float32)
+    if u.size:
+        if int(u.max()) >= width or int(v.max()) >= height:
+            raise FormatError(f"sparse points outside the {width}x{height} image")
+        out[v.astype(np.intp), u.astype(np.intp)] = depth
+    return out
+
+
+# -- depth-like files ------------------------------------------------------------------------------
+def _load_npy(data: bytes, source: str) -> np.ndarray:
+    import io
+
+    try:
+        arr = np.load(io.BytesIO(data), allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:
+        raise FormatError(f"{source}: not a readable .npy array ({exc})") from exc
+    if not isinstance(arr, np.ndarray):
+        raise FormatError(f"{source}: expected one array in the .npy file")
+    if arr.ndim == 3 and arr.shape[2] == 1:
+        arr = arr[:, :, 0]
+    if arr.ndim != 2:
+        raise FormatError(f"{source}: expected an (H, W) array, got shape {arr.shape}")
+    if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+        raise FormatError(f"{source}: expected a numeric array, got {arr.dtype}")
+    return arr
+
+
+def decode_depth_bytes(data: bytes, suffix: str, *, source: str = "depth") -> np.ndarray:
+    """Decode a depth file's bytes: KITTI uint16 PNG or ``.npy`` (metres) by ``suffix``.
+
+    Returns (H, W) float32 metres. Values of a ``.npy`` that are not valid depths
+    (non-finite or <= 0) become 0 (no measurement).
+    """
+    suffix = suffix.lower()
+    if suffix == ".png":
+        return decode_depth_png(data, source=source)
+    if suffix == ".npy":
+        arr = _load_npy(data, source).astype(np.float32, copy=False)
+        with np.errstate(invalid="ignore"):
+            bad = ~(np.isfinite(arr) & (arr > 0))
+        if bad.any():
+            arr = np.where(bad, np.float32(0), arr)
+        return arr
+    raise FormatError(f"{source}: unknown depth format '{suffix}' (expected .png or .npy)")
+
+
+def read_depth_file(path: str | os.PathLike) -> np.ndarray:
+    """Read a depth map: KITTI uint16 PNG (value / 256) or ``.npy`` float metres.
+
+    Returns
+    -------
+    (H, W) float32
+        Metres, 0 = no measurement.
+    """
+    path = Path(path)
+    if path.suffix.lower() == ".png":
+        return read_depth_png(path)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise FormatError(f"{path}: cannot read ({exc.strerror or exc})") from exc
+    return decode_depth_bytes(data, path.suffix, source=str(path))
+
+
+def decode_confidence_bytes(data: bytes, suffix: str, *, source: str = "confidence") -> np.ndarray:
+    """Decode a confidence map: PNG (uint16 / 65535 or uint8 / 255) or ``.npy`` as float32."""
+    suffix = suffix.lower()
+    if suffix == ".npy":
+        return _load_npy(data, source).astype(np.float32, copy=False)
+    if suffix == ".png":
+        import cv2
+
+        img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise FormatError(f"{source}: cannot decode confidence PNG (corrupt?)")
+        if img.ndim != 2:
+            raise FormatError(f"{source}: a confidence PNG must be single-channel")
+        scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(img.dtype)
+        if scale is None:
+            raise FormatError(f"{source}: {img.dtype} PNG, expected uint8 or uint16 confidence")
+        return img.astype(np.float32) / np.float32(scale)
+    raise FormatError(f"{source}: unknown confidence format '{suffix}' (expected .png or .npy)")
+
+
+def read_confidence_file(path: str | os.PathLike) -> np.ndarray:
+    """Read a confidence map (see :func:`decode_confidence_bytes`): (H, W) float32 in [0, 1]."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise FormatError(f"{path}: cannot read ({exc.strerror or exc})") from exc
+    return decode_confidence_bytes(data, path.suffix, source=str(path))
+
+
+# -- manifest and parts --------------------------------------------------------------------------
+def write_manifest(path: str | os.PathLike, table: pa.Table, *, info: dict | None = None) -> None:
+    """Write a manifest table atomically, with the schema version in the key-value metadata.
+
+    Every path column is checked with :func:`check_relative_path` first.
+    """
+    table = table.cast(MANIFEST_SCHEMA)
+    for col in PATH_COLUMNS:
+        for rel in table.column(col).to_pylist():
+            if rel is not None:
+                check_relative_path(rel, what=col)
+    meta = {
+        METADATA_VERSION_KEY: str(SCHEMA_VERSION).encode(),
+        METADATA_INFO_KEY: json.dumps(info or {}, sort_keys=True).encode(),
+    }
+    table = table.replace_schema_metadata(meta)
+    with atomic_path(path) as tmp:
+        pq.write_table(table, tmp, compression="zstd")
+
+
+def read_manifest(path: str | os.PathLike) -> tuple[pa.Table, dict]:
+    """Read and validate ``manifest.parquet``.
+
+    Returns
+    -------
+    table : pyarrow.Table
+        With :data:`MANIFEST_SCHEMA` (extra columns of later minor versions are kept).
+    info : dict
+        ``schema_version`` plus the build information stored in the metadata.
+
+    Raises
+    ------
+    FormatError
+        Missing or unreadable file, no sparsetools metadata, a newer schema version,
+        missing columns, duplicate ids, or a path that could leave the dataset.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FormatError(f"{path}: no such manifest (is this a sparsetools dataset folder?)")
+    try:
+        table = pq.read_table(path)
+    except (pa.ArrowException, OSError) as exc:
+        raise FormatError(f"{path}: cannot read the manifest ({exc})") from exc
+    meta = table.schema.metadata or {}
+    raw = meta.get(METADATA_VERSION_KEY)
+    if raw is None:
+        raise FormatError(f"{path}: no sparsetools schema version in the metadata")
+    try:
+        version = int(raw.decode())
+    except ValueError as exc:
+        raise FormatError(f"{path}: bad schema version {raw!r}") from exc
+    if version > SCHEMA_VERSION:
+        raise FormatError(
+            f"{path}: schema version {version} was written by a newer sparsetools "
+            f"(this one reads up to {SCHEMA_VERSION})"
+        )
+    missing = [f.name for f in MANIFEST_SCHEMA if f.name not in table.column_names]
+    if missing:
+        raise FormatError(f"{path}: manifest lacks column(s) {', '.join(missing)}")
+    try:
+        info = json.loads(meta.get(METADATA_INFO_KEY, b"{}").decode())
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise FormatError(f"{path}: corrupt dataset metadata ({exc})") from exc
+    info["schema_version"] = version
+    try:
+        extra = [c for c in table.column_names if c not in MANIFEST_SCHEMA.names]
+        table = table.select([*MANIFEST_SCHEMA.names, *extra])
+        table = table.cast(
+            pa.schema([*MANIFEST_SCHEMA, *(table.schema.field(c) for c in extra)], metadata=meta),
+        )
+    except (pa.ArrowInvalid, pa.ArrowNotImplementedError) as exc:
+        raise FormatError(f"{path}: manifest columns have unexpected types ({exc})") from exc
+    ids = table.column("id").to_pylist()
+    if len(set(ids)) != len(ids):
+        dup = sorted({i for i in ids if ids.count(i) > 1})
+        raise FormatError(f"{path}: duplicate sample id(s) {', '.join(dup[:5])}")
+    for col in PATH_COLUMNS:
+        for rel in table.column(col).to_pylist():
+            if rel is not None:
+                check_relative_path(rel, what=f"{path.name} column {col}")
+    return table, info
+
+
+def write_sparse_part(
+    path: str | os.PathLike, table: pa.Table, *, row_group_size: int = 32
+) -> None:
+    """Write a sparse-points part (:data:`PART_SCHEMA`, zstd) atomically."""
+    table = table.cast(PART_SCHEMA)
+    with atomic_path(path) as tmp:
+        pq.write_table(table, tmp, compression="zstd", row_group_size=row_group_size)
+
+
+def read_sparse_part(path: str | os.PathLike) -> pa.Table:
+    """Read a whole sparse-points part, checking its columns."""
+    try:
+        table = pq.read_table(path)
+    except (pa.ArrowException, OSError) as exc:
+        raise FormatError(f"{path}: cannot read the sparse part ({exc})") from exc
+    missing = [n for n in PART_SCHEMA.names if n not in table.column_names]
+    if missing:
+        raise FormatError(f"{path}: sparse part lacks column(s) {', '.join(missing)}")
+    try:
+        return table.select(PART_SCHEMA.names).cast(PART_SCHEMA)
+    except (pa.ArrowInvalid, pa.ArrowNotImplementedError) as exc:
+        raise FormatError(f"{path}: sparse part columns have unexpected types ({exc})") from exc
+
+
+def part_rows(
+    table: pa.Table,
+) -> Iterator[tuple[str, np.ndarray, np.ndarray, np.ndarray, int, int]]:
+    """Iterate ``(id, u, v, depth, height, width)`` over a part table without Python per point."""
+    ids = table.column("id").to_pylist()
+    heights = table.column("height").to_numpy()
+    widths = table.column("width").to_numpy()
+    cols = []
+    for name in ("u", "v", "depth"):
+        arr = table.column(name).combine_chunks()
+        cols.append((arr.offsets.to_numpy(), arr.values.to_numpy(zero_copy_only=False)))
+    for i, fid in enumerate(ids):
+        u, v, d = (vals[off[i] : off[i + 1]] for off, vals in cols)
+        yield fid, u, v, d, int(heights[i]), int(widths[i])
+
+
+class _PartCache:
+    """Random access to rows of sparse parts: open files and a few decoded row groups."""
+
+    def __init__(self, max_groups: int = 4):
+        self.files: dict[Path, tuple[pq.ParquetFile, list[int]]] = {}
+        self.groups: OrderedDict[tuple[Path, int], list] = OrderedDict()
+        self.max_groups = max_groups
+
+    def row(self, path: Path, row: int):
+        if path not in self.files:
+            try:
+                pf = pq.ParquetFile(path)
+            except (pa.ArrowException, OSError) as exc:
+                raise FormatError(f"{path}: cannot read the sparse part ({exc})") from exc
+            starts = [0]
+            for g in range(pf.num_row_groups):
+                starts.append(starts[-1] + pf.metadata.row_group(g).num_rows)
+            self.files[path] = (pf, starts)
+        pf, starts = self.files[path]
+        if not 0 <= row < starts[-1]:
+            raise FormatError(f"{path}: no row {row} (the part has {starts[-1]} rows)")
+        g = bisect.bisect_right(starts, row) - 1
+        key = (path, g)
+        rows = self.groups.get(key)
+        if rows is None:
+            try:
+                table = pf.read_row_group(g, columns=PART_SCHEMA.names)
+            except (pa.ArrowException, OSError) as exc:
+                raise FormatError(f"{path}: cannot decode row group {g} ({exc})") from exc
+            rows = list(part_rows(table.cast(PART_SCHEMA)))
+            self.groups[key] = rows
+            while len(self.groups) > self.max_groups:
+                self.groups.popitem(last=False)
+        else:
+            self.groups.move_to_end(key)
+        return rows[row - starts[g]]
+
+
+# -- reader --------------------------------------------------------------------------------------
+class DatasetReader:
+    """Read a sparsetools dataset sample by sample (the base of the training Dataset).
+
+    Parameters
+    ----------
+    path : path-like
+        The dataset folder (holding ``manifest.parquet``).
+    split : str, optional
+        Only the samples of this split (same as ``DatasetReader(path).split(name)``).
+
+    Attributes
+    ----------
+    root : Path
+    manifest : pyarrow.Table
+        The manifest rows of this reader (of its split only, when one is chosen).
+    info : dict
+        ``schema_version`` and the build information from the manifest metadata.
+
+    Notes
+    -----
+    The reader is cheap to pickle (open files and caches are dropped), so a torch
+    ``Dataset`` can hold one and be used with ``DataLoader(num_workers=N)``.
+
+    Examples
+    --------
+    >>> ds = DatasetReader("out/dataset").split("train")      # doctest: +SKIP
+    >>> s = ds.sample(0)                                        # doctest: +SKIP
+    >>> s["rgb"].shape, s["sparse"].dtype, s["intrinsics"]      # doctest: +SKIP
+    """
+
+    def __init__(self, path: str | os.PathLike, *, split: str | None = None):
+        self.root = Path(path)
+        table, info = read_manifest(self.root / MANIFEST_NAME)
+        self._init(table, info, split)
+
+    def _init(self, table: pa.Table, info: dict, split: str | None) -> None:
+        self._all = table
+        self.info = info
+        if split is not None:
+            names = sorted({s for s in table.column("split").to_pylist() if s is not None})
+            if split not in names:
+                raise ParameterError(
+                    f"no split '{split}' in {self.root} (has: {', '.join(names) or 'none'})"
+                )
+            import pyarrow.compute as pc
+
+            table = table.filter(pc.equal(table.column("split"), split))
+        self.split_name = split
+        self.manifest = table
+        self._rows = table.to_pylist()
+        self._index = {r["id"]: i for i, r in enumerate(self._rows)}
+        self._parts = _PartCache()
+
+    # -- container protocol
+    def __len__(self) -> int:
+        return len(self._rows)
+
+    def __iter__(self) -> Iterator[dict]:
+        for i in range(len(self)):
+            yield self.sample(i)
+
+    def __getitem__(self, key: int | str) -> dict:
+        return self.sample(key)
+
+    def __getstate__(self):
+        state = self.__dict__.copy()
+        state["_parts"] = None
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self._parts = _PartCache()
+
+    def __repr__(self) -> str:
+        where = f", split={self.split_name!r}" if self.split_name else ""
+        return f"DatasetReader({str(self.root)!r}{where}, samples={len(self)})"
+
+    # -- views
+    @property
+    def ids(self) -> list[str]:
+        return [r["id"] for r in self._rows]
+
+    @property
+    def splits(self) -> list[str]:
+        """Names of the splits present in the whole dataset."""
+        return sorted({s for s in self._all.column("split").to_pylist() if s is not None})
+
+    def split(self, name: str) -> DatasetReader:
+        """A reader over the samples of split ``name`` only."""
+        view = object.__new__(DatasetReader)
+        view.root = self.root
+        view._init(self._all, self.info, name)
+        return view
+
+    def row(self, key: int | str) -> dict:
+        """The manifest row of a sample (by position or id) as a dict."""
+        if isinstance(key, str):
+            if key not in self._index:
+                raise ParameterError(f"no sample '{key}' in {self}")
+            return self._rows[self._index[key]]
+        i = int(key)
+        if not -len(self) <= i < len(self):
+            raise IndexError(f"sample {i} out of range ({len(self)} samples)")
+        return self._rows[i]
+
+    def path(self, rel: str, *, what: str = "path") -> Path:
+        """Absolute path of a manifest path, refusing anything outside the dataset."""
+        return resolve_in_dataset(self.root, rel, what=what)
+
+    # -- data
+    def sparse_points(self, key: int | str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(u, v, depth) of a sample's sparse depth (uint16, uint16, float32 metres)."""
+        r = self.row(key)
+        if r["sparse_parquet"] is not None:
+            fid, u, v, d, h, w = self._parts.row(
+                self.path(r["sparse_parquet"], what="sparse_parquet"), int(r["sparse_row"])
+            )
+            if fid != r["id"] or (h, w) != (r["height"], r["width"]):
+                raise FormatError(
+                    f"{r['sparse_parquet']} row {r['sparse_row']} holds '{fid}' ({w}x{h}), "
+                    f"expected '{r['id']}' ({r['width']}x{r['height']})"
+                )
+            return u, v, d
+        return depth_to_points(self._read_sparse_png(r))
+
+    def _read_sparse_png(self, r: dict) -> np.ndarray:
+        if r["sparse_path"] is None:
+            raise FormatError(f"sample '{r['id']}' has no sparse depth")
+        return self._checked(
+            read_depth_png(self.path(r["sparse_path"], what="sparse_path")), r, "sparse"
+        )
+
+    @staticmethod
+    def _checked(arr: np.ndarray, r: dict, what: str) -> np.ndarray:
+        if arr.shape[:2] != (r["height"], r["width"]):
+            raise FormatError(
+                f"sample '{r['id']}': {what} is {arr.shape[1]}x{arr.shape[0]}, "
+                f"the manifest says {r['width']}x{r['height']}"
+            )
+        return arr
+
+    def sample(self, key: int | str) -> dict:
+        """Load one sample.
+
+        Parameters
+        ----------
+        key : int or str
+            Position in this reader, or sample id.
+
+        Returns
+        -------
+        dict
+            ``id``, ``sequence``, ``frame``, ``split`` (str);
+            ``rgb`` (H, W, 3) uint8;
+            ``sparse`` (H, W) float32 metres, 0 = empty (from the Parquet points when
+            present: bit-exact, else from the PNG);
+            ``gt`` (H, W) float32 metres or None; ``confidence`` (H, W) float32 or None;
+            ``intrinsics`` (3, 3) float64 K or None.
+        """
+        r = self.row(key)
+        rgb = self._checked(read_image(self.path(r["rgb_path"], what="rgb_path")), r, "rgb")
+        if r["sparse_parquet"] is not None:
+            u, v, d = self.sparse_points(key)
+            sparse = points_to_depth(u, v, d, r["height"], r["width"])
+        else:
+            sparse = self._read_sparse_png(r)
+        gt = None
+        if r["gt_path"] is not None:
+            gt = self._checked(read_depth_file(self.path(r["gt_path"], what="gt_path")), r, "gt")
+        confidence = None
+        if r["confidence_path"] is not None:
+            confidence = self._checked(
+                read_confidence_file(self.path(r["confidence_path"], what="confidence_path")),
+                r,
+                "confidence",
+            )
+        K = None
+        if r["fx"] is not None:
+            K = np.array(
+                [[r["fx"], 0.0, r["cx"]], [0.0, r["fy"], r["cy"]], [0.0, 0.0, 1.0]],
+                dtype=np.float64,
+            )
+        return {
+            "id": r["id"],
+            "sequence": r["sequence"],
+            "frame": r["frame"],
+            "split": r["split"],
+            "rgb": rgb,
+            "sparse": sparse,
+            "gt": gt,
+            "confidence": confidence,
+            "intrinsics": K,
+        }
+
+    def samples(self, keys: Sequence[int | str]) -> list[dict]:
+        return [self.sample(k) for k in keys]

@@ -1,0 +1,37 @@
+"""`sparsetools synth-scene` command: generation, --check reproducibility, bad arguments."""
+
+from __future__ import annotations
+
+from click.testing import CliRunner
+
+from sparsetools.cli.main import cli
+
+SMALL = ["--frames", "1", "--image-size", "64x24", "--underwater-frames", "4", "--seed", "5"]
+
+
+def test_generate_then_check_passes_and_detects_a_change(tmp_path):
+    runner = CliRunner()
+    r = runner.invoke(cli, ["synth-scene", str(tmp_path / "a"), *SMALL, "--json"])
+    assert r.exit_code == 0, r.output
+    r = runner.invoke(cli, ["synth-scene", str(tmp_path / "b"), "--check", str(tmp_path / "a")])
+    assert r.exit_code == 0, r.output
+    assert "different  0" in r.output
+    (tmp_path / "a" / "velodyne" / "000000.bin").write_bytes(b"\0" * 16)
+    r = runner.invoke(cli, ["synth-scene", str(tmp_path / "c"), "--check", str(tmp_path / "a")])
+    assert r.exit_code == 1
+    assert "velodyne/000000.bin" in r.stderr and "Traceback" not in r.output
+
+
+def test_refuses_to_write_into_a_non_empty_folder(tmp_path):
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "keep.txt").write_text("mine")
+    r = CliRunner().invoke(cli, ["synth-scene", str(tmp_path / "a"), *SMALL])
+    assert r.exit_code == 1 and "overwrite" in r.stderr
+    assert sorted(p.name for p in (tmp_path / "a").iterdir()) == ["keep.txt"]
+
+
+def test_bad_sizes_are_usage_errors(tmp_path):
+    r = CliRunner().invoke(cli, ["synth-scene", str(tmp_path / "a"), "--image-size", "64by24"])
+    assert r.exit_code == 2 and "WxH" in r.stderr
+    r = CliRunner().invoke(cli, ["synth-scene", str(tmp_path / "a"), "--frames", "0"])
+    assert r.exit_code == 2
