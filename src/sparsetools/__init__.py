@@ -30,6 +30,9 @@ _LAZY = {
     "read_radar_pcd": ".io.nuscenes",
     "write_radar_pcd": ".io.nuscenes",
     "frame_rng": ".random",
+    "project_points": ".ops.projection",
+    "project_points_with_index": ".ops.projection",
+    "accumulate_sweeps": ".ops.projection",
     "run_frames": ".pipeline",
 }
 

@@ -145,11 +145,12 @@ def encode_depth_png(depth: np.ndarray) -> tuple[bytes, int]:
     depth = np.asarray(depth)
     if depth.ndim != 2:
         raise ParameterError(f"depth must be (H, W), got shape {depth.shape}")
-    d = depth.astype(np.float64)
-    valid = np.isfinite(d) & (d > 0)
-    scaled = np.rint(np.where(valid, d, 0.0) * DEPTH_SCALE)
-    clipped = int(np.count_nonzero(valid & ((scaled < 1) | (scaled > 65535))))
-    out = np.where(valid, np.clip(scaled, 1, 65535), 0).astype(np.uint16)
+    # Sparse maps are mostly empty: convert only the valid pixels.
+    valid = np.isfinite(depth) & (depth > 0)
+    scaled = np.rint(depth[valid].astype(np.float64) * DEPTH_SCALE)
+    clipped = int(np.count_nonzero((scaled < 1) | (scaled > 65535)))
+    out = np.zeros(depth.shape, dtype=np.uint16)
+    out[valid] = np.clip(scaled, 1, 65535).astype(np.uint16)
     ok, buf = cv2.imencode(".png", out)
     if not ok:  # pragma: no cover - OpenCV always encodes uint16 PNG
         raise FormatError("OpenCV failed to encode a depth PNG")

@@ -59,6 +59,10 @@ class DaskExecutor:
     def _client(self):
         from distributed import Client, LocalCluster
 
+        # distributed logs INFO lines (cluster start, worker addresses) on stderr: keep it quiet.
+        for name in ("distributed", "distributed.scheduler", "distributed.nanny", "distributed.worker"):
+            logging.getLogger(name).setLevel(logging.WARNING)
+
         if self.scheduler:
             try:
                 return Client(self.scheduler, timeout="10s"), None

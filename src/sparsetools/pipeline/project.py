@@ -427,6 +427,11 @@ def _input_files(tasks: list[FrameTask]) -> set[Path]:
     return files
 
 
+def _first_line(exc: Exception) -> str:
+    lines = str(exc).strip().splitlines()
+    return lines[0] if lines else type(exc).__name__
+
+
 def _parquet_frames(path: Path) -> list[str]:
     import pyarrow.parquet as pq
 
@@ -434,7 +439,9 @@ def _parquet_frames(path: Path) -> list[str]:
         return pq.read_table(path, columns=["frame"]).column("frame").to_pylist()
     except Exception as exc:  # pyarrow raises several types for a corrupt file
         raise OutputError(
-            f"{path}: exists but cannot be read as Parquet ({exc}); remove it or use --overwrite"
+            f"{path}: exists but is not a sparse depth table of this command "
+            f"({_first_line(exc)}); "
+            "remove it or use --overwrite"
         ) from exc
 
 
@@ -574,7 +581,16 @@ def run_project(
             summary.seconds,
         )
     if settings.fmt == "parquet":
-        _write_parquet(out, tasks, keep_old)
+        try:
+            _write_parquet(out, tasks, keep_old)
+        except OutputError:
+            raise
+        except Exception as exc:  # pyarrow: a schema clash with an older sparse.parquet, I/O
+            raise OutputError(
+                f"cannot merge the frames into {out / PARQUET_NAME} ({_first_line(exc)}); "
+                "the per-frame parts "
+                f"are kept in {out / PARTS_DIR}: rerun with --overwrite to rebuild the table"
+            ) from exc
     return _summary(summary, settings, out)
 
 

@@ -1,0 +1,376 @@
+"""Point clouds to sparse depth maps: pinhole projection with an exact, order-free z-buffer.
+
+Conventions (METHODS.md sections 0-1):
+
+- ``calib.projection`` (3x4, ``P @ T_cam_from_sensor``) takes homogeneous sensor points to
+  homogeneous pixels ``(u w, v w, w)``; ``w`` is the depth (camera z in metres; with a KITTI
+  ``P2`` it is z in camera 2's frame, as KITTI and monodepth2 use).
+- Pixel centres sit at integer coordinates: a point at (u, v) lands in pixel
+  ``(rint(u) + pixel_offset, rint(v) + pixel_offset)``. ``rint`` rounds half to even, as
+  ``numpy.round`` (and so monodepth2) does; it differs from round-half-up only for points
+  exactly on a pixel border.
+- A point is kept when ``min_depth < w <= max_depth`` and its pixel is inside the image.
+  Points with NaN or Inf coordinates never land anywhere.
+- Z-buffer: the smallest depth wins. The depth map is therefore independent of point order.
+  For the index map, equal depths are decided by the points' coordinates (smallest x, then
+  y, then z) and only exact duplicates by the smallest index, so it is independent of point
+  order up to exact duplicates.
+
+The z-buffer is one pass over the points in a numba kernel (a scatter with a min), so its
+cost is O(N) with no sort. This module imports numba: import it where it is used (the
+top-level ``sparsetools`` namespace does so lazily).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from numba import njit
+
+from ..calibration import Calibration
+from ..errors import ParameterError
+
+__all__ = [
+    "accumulate_sweeps",
+    "nuscenes_T_cam_from_sensor",
+    "project_points",
+    "project_points_with_index",
+    "project_uvz",
+    "rigid_inverse",
+    "sparse_from_depth",
+]
+
+# -- kernels ------------------------------------------------------------------------------------
+# One pass over the points, a scatter with a min: O(N), no sort, no allocation per point.
+# The arithmetic is float64 whatever the input dtype, in the order a matrix product would use,
+# so an independent numpy implementation lands every point in the same pixel.
+
+
+@njit(cache=True, nogil=True)
+def _zbuffer_depth(points, M, min_depth, max_depth, offset, depth):  # pragma: no cover - jitted
+    height, width = depth.shape
+    n_in = 0
+    for i in range(points.shape[0]):
+        x = np.float64(points[i, 0])
+        y = np.float64(points[i, 1])
+        z = np.float64(points[i, 2])
+        w = M[2, 0] * x + M[2, 1] * y + M[2, 2] * z + M[2, 3]
+        # Written so that NaN fails every test and is dropped.
+        if not (w > min_depth and w <= max_depth):
+            continue
+        fu = np.rint((M[0, 0] * x + M[0, 1] * y + M[0, 2] * z + M[0, 3]) / w) + offset
+        fv = np.rint((M[1, 0] * x + M[1, 1] * y + M[1, 2] * z + M[1, 3]) / w) + offset
+        if not (fu >= 0.0 and fu < width and fv >= 0.0 and fv < height):
+            continue
+        d = np.float32(w)
+        if d <= 0.0:  # below float32's range: cannot be told from "empty"
+            continue
+        n_in += 1
+        iu = int(fu)
+        iv = int(fv)
+        cur = depth[iv, iu]
+        if cur == 0.0 or d < cur:
+            depth[iv, iu] = d
+    return n_in
+
+
+@njit(cache=True, nogil=True)
+def _zbuffer_index(points, M, min_depth, max_depth, offset, depth, index):  # pragma: no cover
+    height, width = depth.shape
+    # Exact float64 depth of each point that landed: ties are judged in float64, not in the
+    # float32 of the output map.
+    w_of = np.empty(points.shape[0], dtype=np.float64)
+    n_in = 0
+    for i in range(points.shape[0]):
+        x = np.float64(points[i, 0])
+        y = np.float64(points[i, 1])
+        z = np.float64(points[i, 2])
+        w = M[2, 0] * x + M[2, 1] * y + M[2, 2] * z + M[2, 3]
+        if not (w > min_depth and w <= max_depth):
+            continue
+        fu = np.rint((M[0, 0] * x + M[0, 1] * y + M[0, 2] * z + M[0, 3]) / w) + offset
+        fv = np.rint((M[1, 0] * x + M[1, 1] * y + M[1, 2] * z + M[1, 3]) / w) + offset
+        if not (fu >= 0.0 and fu < width and fv >= 0.0 and fv < height):
+            continue
+        d = np.float32(w)
+        if d <= 0.0:
+            continue
+        n_in += 1
+        w_of[i] = w
+        iu = int(fu)
+        iv = int(fv)
+        j = index[iv, iu]
+        if j < 0 or w < w_of[j] or (w == w_of[j] and _before(points, i, j)):
+            index[iv, iu] = i
+            depth[iv, iu] = d
+    return n_in
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _before(points, i, j):  # pragma: no cover - jitted
+    # A tie in depth goes to the lexicographically smaller (x, y, z): a rule on content, not on
+    # position, so the winner does not depend on point order. Exact duplicates keep the earlier
+    # (smaller) index because i > j here.
+    for c in range(3):
+        a = np.float64(points[i, c])
+        b = np.float64(points[j, c])
+        if a != b:
+            return a < b
+    return False
+
+
+def _check_points(points: np.ndarray) -> np.ndarray:
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] < 3:
+        raise ParameterError(
+            f"points must be (N, C>=3) with x, y, z first, got shape {points.shape}"
+        )
+    if points.dtype not in (np.float32, np.float64):
+        if points.dtype.kind not in "fiu":
+            raise ParameterError(f"points must be numeric, got dtype {points.dtype}")
+        points = points.astype(np.float64)
+    return np.ascontiguousarray(points)
+
+
+def _check_options(
+    calib: Calibration, min_depth: float, max_depth: float | None, pixel_offset: int
+) -> tuple[np.ndarray, int, int, float, float, int]:
+    if not isinstance(calib, Calibration):
+        raise ParameterError(f"calib must be a Calibration, got {type(calib).__name__}")
+    width, height = calib.size
+    min_depth = float(min_depth)
+    if not np.isfinite(min_depth) or min_depth < 0:
+        raise ParameterError(f"min_depth must be a finite number >= 0, got {min_depth}")
+    if max_depth is None:
+        max_depth = np.inf
+    else:
+        max_depth = float(max_depth)
+        if np.isnan(max_depth) or max_depth <= min_depth:
+            raise ParameterError(f"max_depth ({max_depth}) must be > min_depth ({min_depth})")
+    if int(pixel_offset) != pixel_offset:
+        raise ParameterError(f"pixel_offset must be an integer, got {pixel_offset}")
+    M = np.ascontiguousarray(calib.projection, dtype=np.float64)
+    return M, width, height, min_depth, max_depth, int(pixel_offset)
+
+
+def project_uvz(points: np.ndarray, projection: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Continuous image coordinates and depth of every point (no rounding, no filtering).
+
+    Parameters
+    ----------
+    points : (N, C) float, metres
+        Sensor-frame points, x, y, z in the first three columns.
+    projection : (3, 4) float
+        ``calib.projection``.
+
+    Returns
+    -------
+    u, v, depth : (N,) float64
+        Pixel coordinates (centres at integers) and depth in metres. Points at depth 0
+        give non-finite u, v; points behind the camera give a negative depth.
+    """
+    points = _check_points(points)
+    M = np.asarray(projection, dtype=np.float64)
+    if M.shape != (3, 4):
+        raise ParameterError(f"projection must be 3x4, got shape {M.shape}")
+    xyz = points[:, :3].astype(np.float64)
+    uvw = xyz @ M[:, :3].T + M[:, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = uvw[:, 0] / uvw[:, 2]
+        v = uvw[:, 1] / uvw[:, 2]
+    return u, v, uvw[:, 2]
+
+
+def project_points(
+    points: np.ndarray,
+    calib: Calibration,
+    *,
+    min_depth: float = 0.1,
+    max_depth: float | None = None,
+    pixel_offset: int = 0,
+    return_count: bool = False,
+) -> np.ndarray | tuple[np.ndarray, int]:
+    """Project a point cloud to a sparse depth map (nearest point wins).
+
+    Parameters
+    ----------
+    points : (N, C) float32 or float64, metres
+        Sensor-frame points, x, y, z first (further columns are ignored).
+    calib : Calibration
+        Sensor-to-camera calibration with a known image size (``calib.size``).
+    min_depth : float, metres
+        Points with depth <= ``min_depth`` are dropped (>= 0; default 0.1).
+    max_depth : float, metres, optional
+        Points with depth > ``max_depth`` are dropped (default: no limit).
+    pixel_offset : int
+        Added to the rounded pixel coordinates: 0 (default, pixel centres at integers) or
+        -1 (monodepth2's shift mimicking KITTI's 1-based MATLAB code).
+    return_count : bool
+        Also return how many points landed inside the image (before the z-buffer).
+
+    Returns
+    -------
+    depth : (H, W) float32, metres
+        0 where no point landed.
+    n_in_image : int
+        Only with ``return_count``.
+
+    Examples
+    --------
+    >>> calib = Calibration(K=np.diag([100.0, 100.0, 1.0]) + [[0, 0, 2], [0, 0, 1], [0, 0, 0]],
+    ...                     T_cam_from_sensor=np.eye(4), width=4, height=3)
+    >>> float(project_points(np.array([[0.0, 0.0, 5.0], [0.0, 0.0, 4.0]]), calib)[1, 2])
+    4.0
+    """
+    points = _check_points(points)
+    M, width, height, lo, hi, offset = _check_options(calib, min_depth, max_depth, pixel_offset)
+    depth = np.zeros((height, width), dtype=np.float32)
+    n_in = int(_zbuffer_depth(points, M, lo, hi, offset, depth)) if points.shape[0] else 0
+    return (depth, n_in) if return_count else depth
+
+
+def project_points_with_index(
+    points: np.ndarray,
+    calib: Calibration,
+    *,
+    min_depth: float = 0.1,
+    max_depth: float | None = None,
+    pixel_offset: int = 0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Like :func:`project_points`, also returning which point won each pixel.
+
+    The index map carries any per-point field into the image:
+    ``np.where(index >= 0, intensity[index], 0)`` (intensity, ring, radar velocity, RCS).
+
+    Returns
+    -------
+    depth : (H, W) float32, metres
+        0 where no point landed.
+    index : (H, W) int64
+        Row of ``points`` that won the pixel (smallest depth; on equal depth the smallest
+        (x, y, z), then the smallest index); -1 where no point landed.
+    """
+    points = _check_points(points)
+    M, width, height, lo, hi, offset = _check_options(calib, min_depth, max_depth, pixel_offset)
+    depth = np.zeros((height, width), dtype=np.float32)
+    index = np.full((height, width), -1, dtype=np.int64)
+    if points.shape[0]:
+        _zbuffer_index(points, M, lo, hi, offset, depth, index)
+    return depth, index
+
+
+def sparse_from_depth(depth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Valid pixels of a sparse depth map as coordinate lists, in row-major order.
+
+    Parameters
+    ----------
+    depth : (H, W) float, metres; 0 or non-finite = empty. H and W must be <= 65536.
+
+    Returns
+    -------
+    u, v : (M,) uint16
+        Column and row of each valid pixel.
+    depth : (M,) float32, metres
+        Exact values of the map (no quantisation).
+    """
+    depth = np.asarray(depth)
+    if depth.ndim != 2:
+        raise ParameterError(f"depth must be (H, W), got shape {depth.shape}")
+    if max(depth.shape) > 65536:
+        raise ParameterError(f"depth map {depth.shape} too large for uint16 pixel coordinates")
+    valid = np.isfinite(depth) & (depth > 0)
+    v, u = np.nonzero(valid)
+    return u.astype(np.uint16), v.astype(np.uint16), depth[v, u].astype(np.float32)
+
+
+# -- rigid transforms (nuScenes chains, multi-sweep accumulation) --------------------------------
+
+
+def rigid_inverse(T: np.ndarray) -> np.ndarray:
+    """Inverse of a (4, 4) rigid transform ``[R | t]``: ``[R^T | -R^T t]``."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise ParameterError(f"rigid transform must be 4x4, got shape {T.shape}")
+    R = T[:3, :3]
+    out = np.eye(4)
+    out[:3, :3] = R.T
+    out[:3, 3] = -R.T @ T[:3, 3]
+    return out
+
+
+def nuscenes_T_cam_from_sensor(
+    T_ego_from_sensor: np.ndarray,
+    T_global_from_ego_at_sensor: np.ndarray,
+    T_global_from_ego_at_camera: np.ndarray,
+    T_ego_from_camera: np.ndarray,
+) -> np.ndarray:
+    """nuScenes chain sensor -> ego (sensor time) -> global -> ego (camera time) -> camera.
+
+    Parameters
+    ----------
+    T_ego_from_sensor : (4, 4)
+        The sensor's ``calibrated_sensor`` record.
+    T_global_from_ego_at_sensor : (4, 4)
+        ``ego_pose`` of the sensor's sample_data (its timestamp).
+    T_global_from_ego_at_camera : (4, 4)
+        ``ego_pose`` of the camera's sample_data.
+    T_ego_from_camera : (4, 4)
+        The camera's ``calibrated_sensor`` record.
+
+    Returns
+    -------
+    T_cam_from_sensor : (4, 4) float64
+    """
+    return (
+        rigid_inverse(T_ego_from_camera)
+        @ rigid_inverse(T_global_from_ego_at_camera)
+        @ np.asarray(T_global_from_ego_at_sensor, dtype=np.float64)
+        @ np.asarray(T_ego_from_sensor, dtype=np.float64)
+    )
+
+
+def accumulate_sweeps(
+    sweeps: Sequence[tuple[np.ndarray, np.ndarray]], *, return_sweep_index: bool = False
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """Merge several sweeps into one frame (multi-sweep radar or LiDAR accumulation).
+
+    Parameters
+    ----------
+    sweeps : sequence of (points, T_target_from_sweep)
+        ``points`` (N_k, C) with x, y, z (metres) in the sweep's sensor frame and the same C
+        for every sweep; ``T_target_from_sweep`` (4, 4) takes that sweep's sensor frame (at
+        its own time) to the target frame, e.g. the key sweep's sensor frame:
+        ``inv(T_global_from_ego_key @ T_ego_from_sensor_key) @ T_global_from_ego_k @
+        T_ego_from_sensor_k``.
+    return_sweep_index : bool
+        Also return, per point, the position of its sweep in ``sweeps``.
+
+    Returns
+    -------
+    points : (sum N_k, C), dtype of the first sweep
+        x, y, z transformed (computed in float64); the other columns are copied unchanged.
+        Radar velocities (vx, vy, vx_comp, vy_comp) are not rotated, as in the nuScenes devkit.
+    sweep_index : (sum N_k,) int16
+        Only with ``return_sweep_index``.
+    """
+    if len(sweeps) == 0:
+        raise ParameterError("accumulate_sweeps needs at least one sweep")
+    chunks, owners = [], []
+    n_cols = None
+    dtype = None
+    for k, (pts, T) in enumerate(sweeps):
+        pts = _check_points(pts)
+        T = np.asarray(T, dtype=np.float64)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise ParameterError(f"sweep {k}: transform must be a finite 4x4, got shape {T.shape}")
+        if n_cols is None:
+            n_cols, dtype = pts.shape[1], pts.dtype
+        elif pts.shape[1] != n_cols:
+            raise ParameterError(f"sweep {k} has {pts.shape[1]} columns, sweep 0 has {n_cols}")
+        out = pts.astype(dtype, copy=True)
+        out[:, :3] = pts[:, :3].astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+        chunks.append(out)
+        owners.append(np.full(pts.shape[0], k, dtype=np.int16))
+    merged = np.concatenate(chunks, axis=0)
+    return (merged, np.concatenate(owners)) if return_sweep_index else merged
