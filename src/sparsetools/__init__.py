@@ -33,6 +33,10 @@ _LAZY = {
     "project_points": ".ops.projection",
     "project_points_with_index": ".ops.projection",
     "accumulate_sweeps": ".ops.projection",
+    "recover_rings": ".ops.beams",
+    "select_beams": ".ops.beams",
+    "ring_table": ".ops.beams",
+    "load_sensor_profile": ".ops.beams",
     "run_frames": ".pipeline",
 }
 

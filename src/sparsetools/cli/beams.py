@@ -1,0 +1,279 @@
+"""``sparsetools beams``: 64-beam LiDAR to 1/2/3/4/8/16/32 beams (or a ring table)."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import click
+
+from .options import (
+    batch_options,
+    emit_summary,
+    executor_from,
+    image_size_option,
+    int_list,
+    progress_enabled,
+)
+
+_INTS = re.compile(r"^\d+(,\d+)*,?$")
+
+
+class _GreedyIntsOption(click.Option):
+    """An option that also takes the integers following it: ``--line-spec 5 7 9 11``.
+
+    (Pseudo-LiDAR++'s argparse spelling; ``--line-spec 5,7,9,11`` works too.)
+    """
+
+    def add_to_parser(self, parser, ctx):
+        super().add_to_parser(parser, ctx)
+        for name in self.opts:
+            opt = getattr(parser, "_long_opt", {}).get(name) or getattr(
+                parser, "_short_opt", {}
+            ).get(name)
+            if opt is None or not hasattr(opt, "process"):
+                continue  # unknown click internals: only the comma form works then
+            original = opt.process
+
+            def process(value, state, _original=original):
+                values = [value]
+                while getattr(state, "rargs", None) and _INTS.match(state.rargs[0]):
+                    values.append(state.rargs.pop(0))
+                _original(" ".join(values), state)
+
+            opt.process = process
+
+
+def _n_values(ctx, param, value):
+    if value is None:
+        return ()
+    try:
+        values = tuple(int(v) for v in value.replace(" ", "").split(",") if v)
+    except ValueError:
+        raise click.BadParameter(f"expected N or a list such as 1,2,4,16; got {value!r}") from None
+    if not values:
+        raise click.BadParameter("no beam count given")
+    if any(v < 1 for v in values):
+        raise click.BadParameter(f"beam counts must be >= 1, got {value!r}")
+    if len(set(values)) != len(values):
+        raise click.BadParameter(f"beam counts repeat: {value!r}")
+    return values
+
+
+def _non_negative_ints(ctx, param, value):
+    values = int_list(ctx, param, value)
+    if values is not None and any(v < 0 for v in values):
+        raise click.BadParameter(f"ring / bin numbers must be >= 0, got {value!r}")
+    if values is not None and len(set(values)) != len(values):
+        raise click.BadParameter(f"values repeat: {value!r}")
+    return values
+
+
+@click.command("beams")
+@click.argument("clouds", nargs=-1, required=True, type=click.Path(exists=True, path_type=Path))
+@click.option(
+    "--n",
+    "n",
+    callback=_n_values,
+    metavar="N[,N...]",
+    help="Beams to keep: one N (OUT/<stem>.bin) or several, e.g. 1,2,4,16 "
+    "(OUT/n<N>/<stem>.bin each).",
+)
+@click.option(
+    "--select",
+    type=click.Choice(["horizon", "uniform", "pl++"]),
+    default=None,
+    help="horizon: the N lasers nearest -0.2/-1.0/-1.8/-2.6 deg (default for N <= 4); "
+    "uniform: every (L/N)-th laser (default above 4); pl++: Pseudo-LiDAR++ "
+    "sparsify.py emulation (elevation bins; needs --calib).",
+)
+@click.option(
+    "--rings",
+    callback=_non_negative_ints,
+    metavar="R,R,...",
+    help="Keep these rings (0 = highest laser) instead of a selection.",
+)
+@click.option(
+    "--ring-method",
+    type=click.Choice(["scan-order", "elevation", "column"]),
+    default=None,
+    help="How rings are recovered [default: column for nuScenes .pcd.bin, else "
+    "scan-order, falling back to elevation with a warning].",
+)
+@click.option(
+    "--lasers",
+    "n_lasers",
+    type=click.IntRange(1, 256),
+    default=None,
+    help="Lasers of the sensor [default: 32 with --ring-method column, else 64].",
+)
+@click.option(
+    "--profile",
+    default="auto",
+    show_default=True,
+    metavar="NAME|JSON|none",
+    help="Sensor profile (laser elevations and cones): auto = hdl64e-kitti for "
+    "64-laser clouds without a ring column.",
+)
+@click.option(
+    "--line-spec",
+    cls=_GreedyIntsOption,
+    callback=_non_negative_ints,
+    metavar="B B ...",
+    help="pl++ elevation bins to keep, e.g. 5 7 9 11 (implies pl++).",
+)
+@click.option(
+    "--pl-grid",
+    default="1024x64",
+    show_default=True,
+    metavar="WxH",
+    help="pl++ grid: W azimuth bins over 90 deg, H elevation bins of 0.4*64/H deg.",
+)
+@click.option(
+    "--calib",
+    type=click.Path(exists=True, path_type=Path),
+    help="Calibration (file, KITTI raw folder, or per-frame folder matched by stem): "
+    "reports the projected map's density per N; needed by pl++.",
+)
+@image_size_option
+@click.option(
+    "--image",
+    type=click.Path(exists=True, path_type=Path),
+    help="Image (or folder matched by stem) giving the map size.",
+)
+@click.option(
+    "--format",
+    "fmt",
+    type=click.Choice(["bin", "npy", "pcd"]),
+    default="bin",
+    show_default=True,
+    help="Output format (bin keeps the input's float32 rows).",
+)
+@click.option(
+    "--far-range",
+    type=click.FloatRange(min=0),
+    default=20.0,
+    show_default=True,
+    help="Points beyond this horizontal range (m) give a laser's elevation.",
+)
+@click.option(
+    "--report",
+    is_flag=True,
+    help="Only print each cloud's ring table (ring, points, median elevation).",
+)
+@click.option(
+    "-o",
+    "--out",
+    "out_dir",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="Output folder (created; existing complete outputs are skipped unless --overwrite).",
+)
+@batch_options
+def beams(
+    clouds,
+    n,
+    select,
+    rings,
+    ring_method,
+    n_lasers,
+    profile,
+    line_spec,
+    pl_grid,
+    calib,
+    image_size,
+    image,
+    fmt,
+    far_range,
+    report,
+    out_dir,
+    workers,
+    overwrite,
+    on_error,
+    executor,
+    dask_scheduler,
+    as_json,
+):
+    """Keep 1-32 beams of 64-beam LiDAR scans (all columns of the kept points).
+
+    CLOUD may be files or folders (.bin KITTI, .pcd.bin nuScenes, .npy, .pcd). Rings are
+    recovered from the scan order (ring 0 = highest laser); the same lasers are kept on
+    every frame.
+
+    \b
+    Examples:
+      sparsetools beams kitti/velodyne --n 4 -o out/beams4
+      sparsetools beams kitti/velodyne --n 1,2,4,16 --calib kitti/calib \\
+          --image kitti/image_2 -o out/beams
+      sparsetools beams kitti/velodyne --select pl++ --line-spec 5 7 9 11 \\
+          --calib kitti/calib --image kitti/image_2 -o out/plpp4
+      sparsetools beams --report kitti/velodyne/000001.bin
+    """
+    from ..pipeline.beams import BeamsSettings, ring_report, run_beams
+
+    m = re.fullmatch(r"(\d+)x(\d+)", pl_grid.lower())
+    if not m or int(m.group(1)) < 1 or int(m.group(2)) < 1:
+        raise click.BadParameter(
+            f"expected WxH such as 1024x64, got {pl_grid!r}", param_hint="--pl-grid"
+        )
+    pl_width, pl_height = int(m.group(1)), int(m.group(2))
+    if report:
+        settings = BeamsSettings(
+            n=(1,),
+            ring_method=ring_method,
+            n_lasers=n_lasers,
+            profile=profile,
+            far_range=far_range,
+        )
+        _print_report(ring_report(list(clouds), settings), as_json)
+        return
+    if out_dir is None:
+        raise click.UsageError("Missing option '-o' / '--out' (or use --report).")
+    if not n and rings is None and line_spec is None:
+        raise click.UsageError("give the number of beams (--n), --rings or --line-spec")
+    if (image_size is not None or image is not None) and calib is None:
+        raise click.UsageError("--image-size / --image go with --calib")
+    settings = BeamsSettings(
+        n=n,
+        select=select,
+        rings=rings,
+        ring_method=ring_method,
+        n_lasers=n_lasers,
+        profile=profile,
+        line_spec=line_spec,
+        pl_width=pl_width,
+        pl_height=pl_height,
+        fmt=fmt,
+        far_range=far_range,
+    )
+    params = click.get_current_context().params
+    summary = run_beams(
+        list(clouds),
+        out_dir,
+        settings,
+        calib=calib,
+        image=image,
+        image_size=image_size,
+        executor=executor_from(params),
+        overwrite=overwrite,
+        on_error=on_error,
+        progress=progress_enabled(),
+    )
+    emit_summary(summary, as_json=as_json, title=f"beams written to {out_dir}")
+
+
+def _print_report(reports: list[dict], as_json: bool) -> None:
+    import json
+
+    if as_json:
+        click.echo(
+            json.dumps([{k: v for k, v in r.items() if k != "_table"} for r in reports], indent=1)
+        )
+        return
+    for r in reports:
+        order = "decreasing" if r["monotonic"] else "NOT monotonic"
+        click.echo(
+            f"{r['cloud']}: {r['points']} points, {r['rings']} rings "
+            f"({r['ring_method']}, {r['n_lasers']} lasers), median elevation {order}"
+        )
+        click.echo(r["_table"].format())
