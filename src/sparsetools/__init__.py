@@ -37,6 +37,12 @@ _LAZY = {
     "select_beams": ".ops.beams",
     "ring_table": ".ops.beams",
     "load_sensor_profile": ".ops.beams",
+    "dense_to_sparse": ".ops.sparse",
+    "sparse_to_dense": ".ops.sparse",
+    "DatasetReader": ".io.dataset",
+    "build_dataset": ".pipeline.dataset",
+    "verify_dataset": ".pipeline.dataset",
+    "depth_stats": ".ops.stats",
     "run_frames": ".pipeline",
 }
 

@@ -149,19 +149,30 @@ def emit_summary(summary: dict, *, as_json: bool, title: str = "") -> None:
     else:
         if title:
             click.echo(title)
-        width = max((len(k) for k in summary), default=0)
-        for k, v in summary.items():
-            if isinstance(v, dict) and k == "failures":
-                for fid, err in v.items():
-                    click.echo(f"  failed {fid}: {err}")
-                continue
+        rows = _flatten({k: v for k, v in summary.items() if k != "failures"})
+        width = max((len(k) for k, _ in rows), default=0)
+        for k, v in rows:
             if isinstance(v, float):
                 v = f"{v:.4g}"
-            click.echo(f"{k.replace('_', ' '):<{width}}  {v}")
+            click.echo(f"{k:<{width}}  {v}")
+        for fid, err in (summary.get("failures") or {}).items():
+            click.echo(f"  failed {fid}: {err}")
     if summary.get("failed"):
         ctx = click.get_current_context()
         click.echo(f"Error: {summary['failed']} frame(s) failed (listed above)", err=True)
         ctx.exit(1)
+
+
+def _flatten(d: dict, prefix: str = "") -> list[tuple[str, object]]:
+    """Nested dicts become ``parent.child`` rows; underscores read as spaces."""
+    rows = []
+    for k, v in d.items():
+        key = f"{prefix}{str(k).replace('_', ' ')}"
+        if isinstance(v, dict):
+            rows.extend(_flatten(v, key + "."))
+        else:
+            rows.append((key, v))
+    return rows
 
 
 def _json_default(o):

@@ -77,13 +77,14 @@ def _allow_empty(path: Path) -> bool:
     return path.suffix in {".bin", ".txt", ".csv"}
 
 
-def remove_stale_temporaries(folder: str | os.PathLike) -> int:
-    """Delete temporary files left by an interrupted run under ``folder``; return how many."""
+def remove_stale_temporaries(folder: str | os.PathLike, *, recursive: bool = True) -> int:
+    """Delete temporary files left by an interrupted run in ``folder`` (and below, when
+    ``recursive``); return how many."""
     folder = Path(folder)
     if not folder.is_dir():
         return 0
     n = 0
-    for tmp in folder.rglob(TMP_PREFIX + "*"):
+    for tmp in (folder.rglob if recursive else folder.glob)(TMP_PREFIX + "*"):
         with contextlib.suppress(OSError):
             tmp.unlink()
             n += 1

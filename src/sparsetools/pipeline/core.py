@@ -217,7 +217,7 @@ def run_frames(
         raise ParameterError(f"two inputs map to the same frame id: {', '.join(dup[:5])}")
     t0 = time.perf_counter()
     for folder in {Path(p).parent for t in tasks for p in t.outputs}:
-        remove_stale_temporaries(folder)
+        remove_stale_temporaries(folder, recursive=False)
     results: dict[str, FrameResult] = {}
     todo = []
     for t in tasks:

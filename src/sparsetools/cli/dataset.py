@@ -1,0 +1,375 @@
+"""``sparsetools dataset``: build, inspect and verify Parquet/PNG training datasets."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+
+from .options import batch_options, emit_summary, executor_from, progress_enabled
+
+
+def _split_callback(ctx, param, value):
+    if value is None:
+        return None
+    from ..errors import ParameterError
+    from ..pipeline.dataset import parse_split_fractions
+
+    try:
+        return parse_split_fractions(value)
+    except ParameterError as exc:
+        raise click.BadParameter(str(exc)) from None
+
+
+def _sequence_callback(ctx, param, value):
+    from ..errors import ParameterError
+    from ..pipeline.dataset import sequence_resolver
+
+    try:
+        sequence_resolver(value, "x")
+    except ParameterError as exc:
+        raise click.BadParameter(str(exc)) from None
+    return value
+
+
+def _split_file_callback(ctx, param, value):
+    out = []
+    for item in value or ():
+        name, sep, path = item.partition("=")
+        if sep and not Path(item).exists():
+            if not name or not Path(path).is_file():
+                raise click.BadParameter(f"expected NAME=PATH with an existing file, got {item!r}")
+            out.append((name, path))
+        else:
+            if not Path(item).is_file():
+                raise click.BadParameter(f"no such split file: {item}")
+            out.append(item)
+    return tuple(out)
+
+
+def _params_callback(ctx, param, value):
+    if value is None:
+        return None
+    text = value
+    if not value.lstrip().startswith("{"):
+        p = Path(value)
+        if not p.is_file():
+            raise click.BadParameter("expected a JSON object or a JSON file")
+        text = p.read_text(encoding="utf-8")
+    try:
+        obj = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise click.BadParameter(f"not valid JSON ({exc})") from None
+    if not isinstance(obj, dict):
+        raise click.BadParameter("generation parameters must be a JSON object")
+    return obj
+
+
+@click.group("dataset")
+def dataset():
+    """Build, inspect and verify training datasets (Parquet manifest + PNG/Parquet files).
+
+    \b
+    Example:
+      sparsetools synth-scene out/scene --frames 4 --underwater-frames 0
+      sparsetools dataset build -o out/ds --rgb out/scene/image_2 \\
+          --sparse out/scene/depth_gt --calib out/scene/calib
+      sparsetools dataset info out/ds
+      sparsetools dataset verify out/ds
+    See docs/dataset.md for the on-disk format.
+    """
+
+
+@dataset.command("build")
+@click.option(
+    "-o",
+    "--out",
+    "out_dir",
+    required=True,
+    type=click.Path(path_type=Path),
+    help="Dataset folder (created, or extended when it holds a dataset).",
+)
+@click.option(
+    "--rgb",
+    required=True,
+    type=click.Path(exists=True, path_type=Path),
+    help="Folder of camera images (.png/.jpg), searched recursively.",
+)
+@click.option(
+    "--sparse",
+    required=True,
+    type=click.Path(exists=True, path_type=Path),
+    help="Folder of sparse depth maps (KITTI uint16 PNG or .npy metres), or a Parquet "
+    "points table (id, u, v, depth).",
+)
+@click.option(
+    "--gt",
+    type=click.Path(exists=True, file_okay=False, path_type=Path),
+    help="Folder of ground-truth depth maps (PNG or .npy).",
+)
+@click.option(
+    "--confidence",
+    type=click.Path(exists=True, file_okay=False, path_type=Path),
+    help="Folder of confidence maps (PNG uint16/65535 or .npy; <stem>_conf matches).",
+)
+@click.option(
+    "--calib",
+    type=click.Path(exists=True, path_type=Path),
+    help="One calibration (file or KITTI raw calib folder) or a folder of per-frame "
+    "calibrations: gives fx, fy, cx, cy.",
+)
+@click.option(
+    "--sequence-from",
+    default="parent",
+    show_default=True,
+    callback=_sequence_callback,
+    metavar="parent|regex:PATTERN",
+    help="Sequence of a frame: its folder, or a regex on its relative path "
+    "(group 'sequence' or group 1).",
+)
+@click.option(
+    "--split",
+    "split",
+    callback=_split_callback,
+    metavar="TRAIN,VAL,TEST",
+    help="Split fractions over sequences [default: 0.8,0.1,0.1]; or name=fraction,...",
+)
+@click.option(
+    "--split-file",
+    "split_files",
+    multiple=True,
+    callback=_split_file_callback,
+    metavar="[NAME=]FILE",
+    help="Split list (KITTI Eigen form or one id per line); repeat per split. The split "
+    "name comes from NAME= or the file name (train/val/test).",
+)
+@click.option(
+    "--seed", type=int, default=0, show_default=True, help="Seed of the split assignment."
+)
+@click.option(
+    "--sparse-format",
+    type=click.Choice(["png", "parquet", "both"]),
+    default="both",
+    show_default=True,
+    help="Store sparse depth as KITTI PNGs, Parquet points, or both.",
+)
+@click.option(
+    "--copy/--link",
+    "copy",
+    default=True,
+    show_default=True,
+    help="Copy input files, or hard-link them (falls back to copying).",
+)
+@click.option(
+    "--source",
+    default="lidar",
+    show_default=True,
+    help="Sensor of the sparse depth, stored per sample (lidar, lidar-4beam, radar...).",
+)
+@click.option(
+    "--params",
+    callback=_params_callback,
+    metavar="JSON|FILE",
+    help="Generation parameters (JSON object) stored in every new row.",
+)
+@batch_options
+@click.pass_context
+def build(
+    ctx,
+    out_dir,
+    rgb,
+    sparse,
+    gt,
+    confidence,
+    calib,
+    sequence_from,
+    split,
+    split_files,
+    seed,
+    sparse_format,
+    copy,
+    source,
+    params,
+    workers,
+    overwrite,
+    on_error,
+    executor,
+    dask_scheduler,
+    as_json,
+):
+    """Build a dataset, or add frames to one, from per-frame files matched by name.
+
+    Frames are matched by their path relative to each folder without suffix (or by a file
+    stem that is unique on both sides). Splits go by sequence, never by frame. Rerunning
+    after an interruption resumes; frames already in the dataset are kept (rebuilt with
+    --overwrite).
+
+    \b
+    Examples:
+      sparsetools beams out/scene/velodyne --n 4 -o out/beams4
+      sparsetools project out/beams4 --calib out/scene/calib --image out/scene/image_2 \\
+          -o out/depth4
+      sparsetools dataset build -o out/ds4 --rgb out/scene/image_2 --sparse out/depth4 \\
+          --gt out/scene/depth_gt --calib out/depth4/calib --source lidar-4beam
+      sparsetools dataset build -o out/kitti --rgb raw --sparse velodyne_raw \\
+          --split-file train=eigen_train_files.txt --split-file test=eigen_test_files.txt
+    """
+    from ..pipeline.dataset import build_dataset
+
+    if split is not None and split_files:
+        raise click.UsageError("give --split or --split-file, not both")
+    params_all = ctx.params
+    summary = build_dataset(
+        out_dir,
+        rgb=rgb,
+        sparse=sparse,
+        gt=gt,
+        confidence=confidence,
+        calib=calib,
+        sequence_from=sequence_from,
+        split=split,
+        split_files=split_files or None,
+        seed=seed,
+        sparse_format=sparse_format,
+        link=not copy,
+        source=source,
+        params=params,
+        executor=executor_from(params_all),
+        overwrite=overwrite,
+        on_error=on_error,
+        progress=progress_enabled(),
+        debug=bool(ctx.find_root().obj.get("debug")),
+    )
+    if not as_json:
+        summary = _flat(summary)
+    emit_summary(summary, as_json=as_json, title=f"dataset written to {out_dir}")
+
+
+def _flat(summary: dict) -> dict:
+    """One line per value for the text summary (nested dicts joined)."""
+    out = {}
+    for k, v in summary.items():
+        if isinstance(v, dict) and k != "failures":
+            if not v:
+                continue
+            out[k] = ", ".join(f"{kk} {_fmt(vv)}" for kk, vv in v.items())
+        else:
+            out[k] = v
+    return out
+
+
+def _fmt(v) -> str:
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    return str(v)
+
+
+@dataset.command("info")
+@click.argument("dataset_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option("--json", "as_json", is_flag=True, help="Print the information as JSON.")
+def info(dataset_dir, as_json):
+    """Counts per split, image sizes, density statistics, file sizes, schema version.
+
+    \b
+    Example:
+      sparsetools dataset info out/ds --json
+    """
+    from ..pipeline.dataset import dataset_info
+
+    d = dataset_info(dataset_dir)
+    if as_json:
+        emit_summary(d, as_json=True)
+        return
+    lines = [
+        ("dataset", d["dataset"]),
+        ("schema version", d["schema_version"]),
+        ("created by", d["created_by"]),
+        ("samples", f"{d['samples']} in {d['sequences']} sequence(s)"),
+    ]
+    for name, s in d["splits"].items():
+        lines.append(
+            (
+                f"  {name}",
+                f"{s['samples']} sample(s), {s['sequences']} sequence(s), {s['with_gt']} with gt",
+            )
+        )
+    lines.append(("image sizes", ", ".join(f"{k} ({v})" for k, v in d["image_sizes"].items())))
+    lines.append(("sources", ", ".join(f"{k} ({v})" for k, v in d["sources"].items())))
+    lines.append(
+        (
+            "with gt / confidence / intrinsics",
+            f"{d['with_gt']} / {d['with_confidence']} / {d['with_intrinsics']}",
+        )
+    )
+    dens = d["density_percent"]
+    npts = d["n_sparse"]
+    lines.append(
+        ("sparse points", f"mean {npts['mean']:.1f}, min {npts['min']:.0f}, max {npts['max']:.0f}")
+    )
+    lines.append(
+        (
+            "density %",
+            f"min {dens['min']:.4g}, median {dens['median']:.4g}, "
+            f"mean {dens['mean']:.4g}, max {dens['max']:.4g}",
+        )
+    )
+    lines.append(
+        (
+            "size",
+            _human(d["total_bytes"])
+            + " ("
+            + ", ".join(f"{k} {_human(v)}" for k, v in d["bytes"].items())
+            + ")",
+        )
+    )
+    if d["missing_files"]:
+        lines.append(("missing files", f"{d['missing_files']} (run 'dataset verify')"))
+    width = max(len(k) for k, _ in lines)
+    for k, v in lines:
+        click.echo(f"{k:<{width}}  {v}")
+
+
+def _human(n: int) -> str:
+    for unit in ("B", "KB", "MB", "GB"):
+        if n < 1024 or unit == "GB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return str(n)  # pragma: no cover
+
+
+@dataset.command("verify")
+@click.argument("dataset_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option("--no-hash", is_flag=True, help="Skip the SHA-256 comparison (faster).")
+@click.option(
+    "--workers",
+    type=click.IntRange(min=1),
+    default=1,
+    show_default=True,
+    help="Threads reading and decoding files.",
+)
+@click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
+def verify(dataset_dir, no_hash, workers, as_json):
+    """Check every file: present, decodable, sizes consistent, SHA-256 matching the manifest.
+
+    Exits with status 1 and lists the problems when any is found.
+
+    \b
+    Example:
+      sparsetools dataset verify out/ds
+    """
+    from ..pipeline.dataset import verify_dataset
+
+    report = verify_dataset(dataset_dir, check_hashes=not no_hash, workers=workers)
+    if as_json:
+        click.echo(json.dumps(report, indent=1))
+    else:
+        for w in report["warnings"]:
+            click.echo(f"warning: {w}")
+        for p in report["problems"]:
+            click.echo(f"problem: {p}")
+        if not report["problems"]:
+            click.echo(f"{dataset_dir}: {report['samples']} sample(s) verified, no problem")
+    if report["problems"]:
+        click.echo(f"Error: {len(report['problems'])} problem(s) found in {dataset_dir}", err=True)
+        click.get_current_context().exit(1)

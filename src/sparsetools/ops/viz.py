@@ -1,0 +1,178 @@
+"""Pictures of depth maps: labelled overlays, side-by-side comparisons and a colour bar.
+
+Built on :mod:`sparsetools.ops.colormap` (turbo, blue = near, red = far); this module only
+adds text labels (OpenCV's Hershey font) and the layout. Arrays in, arrays out: reading and
+writing files is the caller's job (``sparsetools viz``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from ..errors import ParameterError
+from .colormap import colorize_depth, overlay_depth, side_by_side
+
+__all__ = ["colorbar", "depth_panels", "label_panel"]
+
+
+def _font_scale(height: int) -> float:
+    return float(np.clip(height / 450.0, 0.35, 1.2))
+
+
+def label_panel(rgb: np.ndarray, text: str, *, scale: float | None = None) -> np.ndarray:
+    """Copy of ``rgb`` with ``text`` written in its top-left corner (white on a dark outline).
+
+    Parameters
+    ----------
+    rgb : (H, W, 3) uint8
+    text : str
+        ASCII text (OpenCV's Hershey fonts have no other glyphs; others become ``?``).
+    scale : float, optional
+        Font scale; default grows with the image height.
+    """
+    import cv2
+
+    out = np.ascontiguousarray(rgb, dtype=np.uint8).copy()
+    if not text:
+        return out
+    text = text.encode("ascii", "replace").decode("ascii")
+    scale = _font_scale(out.shape[0]) if scale is None else float(scale)
+    thick = max(1, round(2 * scale))
+    (_, th), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, thick)
+    org = (max(2, round(6 * scale)), max(th + 2, round(6 * scale) + th))
+    cv2.putText(out, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), thick + 2, cv2.LINE_AA)
+    cv2.putText(
+        out, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), thick, cv2.LINE_AA
+    )
+    return out
+
+
+def colorbar(
+    width: int,
+    *,
+    max_depth: float = 80.0,
+    min_depth: float = 0.0,
+    height: int | None = None,
+    ticks: int = 5,
+) -> np.ndarray:
+    """A horizontal colour bar ``min_depth`` .. ``max_depth`` with metre labels.
+
+    Returns
+    -------
+    (h, width, 3) uint8
+        The same colours as :func:`sparsetools.ops.colormap.colorize_depth`; white background
+        under the labels.
+    """
+    import cv2
+
+    if width < 16:
+        raise ParameterError(f"colour bar width must be >= 16 px, got {width}")
+    if not max_depth > min_depth:
+        raise ParameterError(f"max_depth must exceed min_depth, got {min_depth}..{max_depth}")
+    scale = _font_scale(width // 3)
+    bar_h = height or max(10, round(18 * scale))
+    text_h = round(30 * scale) + 6
+    margin = max(8, round(30 * scale))
+    inner = width - 2 * margin
+    # Depth ramp over the inner width; tiny offset keeps 0 m coloured (0 = "no data").
+    ramp = np.linspace(min_depth, max_depth, inner, dtype=np.float64)
+    ramp = np.where(ramp <= 0, 1e-6, ramp)
+    row = colorize_depth(ramp[None, :].astype(np.float32), max_depth=max_depth, min_depth=min_depth)
+    out = np.full((bar_h + text_h, width, 3), 255, np.uint8)
+    out[:bar_h, margin : margin + inner] = row
+    thick = max(1, round(scale))
+    for i in range(ticks):
+        value = min_depth + (max_depth - min_depth) * i / max(ticks - 1, 1)
+        x = margin + round((inner - 1) * i / max(ticks - 1, 1))
+        label = f"{value:g} m"
+        (tw, th), _ = cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, scale * 0.8, thick)
+        x0 = int(np.clip(x - tw // 2, 0, width - tw))
+        cv2.line(out, (x, bar_h), (x, bar_h + 3), (0, 0, 0), 1)
+        cv2.putText(
+            out,
+            label,
+            (x0, bar_h + 4 + th),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            scale * 0.8,
+            (0, 0, 0),
+            thick,
+            cv2.LINE_AA,
+        )
+    return out
+
+
+def depth_panels(
+    image: np.ndarray | None,
+    depths: Sequence[np.ndarray],
+    *,
+    labels: Sequence[str] | None = None,
+    max_depth: float = 80.0,
+    dilate: int = 2,
+    vertical: bool = True,
+    with_colorbar: bool = True,
+) -> np.ndarray:
+    """Overlay one or more depth maps on the same image, label them and stack the panels.
+
+    Parameters
+    ----------
+    image : (H, W, 3) uint8 RGB or None
+        Background; None draws the points on black.
+    depths : sequence of (H, W) float, metres
+        0 = empty. Each becomes one panel (``overlay_depth``, nearest point on top).
+    labels : sequence of str, optional
+        One per depth map, written in the panel's corner.
+    max_depth : float, metres
+        Red end of the colour scale (blue = 0 m).
+    dilate : int
+        Each point drawn as a (2 * dilate + 1)^2 square.
+    vertical : bool
+        Stack panels top to bottom (default) or left to right.
+    with_colorbar : bool
+        Add a labelled colour bar below.
+
+    Returns
+    -------
+    (H', W', 3) uint8
+    """
+    if not depths:
+        raise ParameterError("no depth map to draw")
+    if labels is not None and len(labels) != len(depths):
+        raise ParameterError(f"{len(labels)} label(s) for {len(depths)} depth map(s)")
+    if not max_depth > 0:
+        raise ParameterError(f"max_depth must be > 0, got {max_depth}")
+    if dilate < 0:
+        raise ParameterError(f"dilate must be >= 0, got {dilate}")
+    shape = np.asarray(depths[0]).shape
+    for d in depths:
+        if np.asarray(d).ndim != 2 or np.asarray(d).shape != shape:
+            raise ParameterError(
+                f"depth maps must all be (H, W) of the same size, got {np.asarray(d).shape} and {shape}"
+            )
+    if image is None:
+        image = np.zeros((*shape, 3), np.uint8)
+        dim = 1.0
+    else:
+        image = np.asarray(image)
+        dim = 0.6
+        if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
+            raise ParameterError(
+                f"image must be (H, W, 3) uint8 RGB, got {image.dtype} {image.shape}"
+            )
+        if image.shape[:2] != shape:
+            raise ParameterError(
+                f"image is {image.shape[1]}x{image.shape[0]} but depth is {shape[1]}x{shape[0]}"
+            )
+    panels = []
+    for i, d in enumerate(depths):
+        panel = overlay_depth(
+            image, np.asarray(d, dtype=np.float32), max_depth=max_depth, dilate=int(dilate), dim=dim
+        )
+        if labels is not None:
+            panel = label_panel(panel, labels[i])
+        panels.append(panel)
+    out = side_by_side(panels, vertical=vertical) if len(panels) > 1 else panels[0]
+    if with_colorbar and out.shape[1] >= 64:
+        out = side_by_side([out, colorbar(out.shape[1], max_depth=max_depth)], vertical=True)
+    return out

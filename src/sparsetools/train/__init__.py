@@ -1,0 +1,1 @@
+"""Training and evaluation of depth-completion baselines: torch lives only here."""

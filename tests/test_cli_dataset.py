@@ -1,0 +1,207 @@
+"""``sparsetools dataset build / info / verify`` from the command line."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from sparsetools.cli.main import cli
+from sparsetools.io.dataset import MANIFEST_NAME, DatasetReader
+from sparsetools.io.image import write_depth_png, write_image
+
+W, H = 32, 16
+
+
+def tree_hash(folder: Path) -> str:
+    h = hashlib.sha256()
+    for p in sorted(folder.rglob("*")):
+        if p.is_file():
+            h.update(p.relative_to(folder).as_posix().encode())
+            h.update(p.read_bytes())
+    return h.hexdigest()
+
+
+@pytest.fixture
+def inputs(tmp_path):
+    rng = np.random.default_rng(0)
+    root = tmp_path / "in"
+    for seq in ("s1", "s2", "s3", "s4"):
+        for f in range(2):
+            key = f"{seq}/{f:04d}"
+            write_image(
+                root / "rgb" / f"{key}.png", rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+            )
+            d = np.where(rng.random((H, W)) < 0.2, rng.uniform(1, 60, (H, W)), 0).astype(np.float32)
+            write_depth_png(root / "sparse" / f"{key}.png", d)
+            write_depth_png(root / "gt" / f"{key}.png", rng.uniform(1, 60, (H, W)))
+    (root / "calib.json").write_text(
+        json.dumps(
+            {
+                "K": [[30.0, 0, 15.5], [0, 30.0, 7.5], [0, 0, 1]],
+                "T_cam_from_sensor": np.eye(4).tolist(),
+            }
+        )
+    )
+    return root
+
+
+def run(args):
+    runner = CliRunner()
+    return runner.invoke(cli, [str(a) for a in args], catch_exceptions=False)
+
+
+def build_args(inputs, out, *extra):
+    return [
+        "dataset",
+        "build",
+        "-o",
+        out,
+        "--rgb",
+        inputs / "rgb",
+        "--sparse",
+        inputs / "sparse",
+        "--gt",
+        inputs / "gt",
+        "--calib",
+        inputs / "calib.json",
+        *extra,
+    ]
+
+
+def test_build_info_verify(inputs, tmp_path):
+    out = tmp_path / "ds"
+    before = tree_hash(inputs)
+    res = run(
+        build_args(
+            inputs,
+            out,
+            "--json",
+            "--split",
+            "0.5,0.25,0.25",
+            "--seed",
+            "3",
+            "--source",
+            "lidar-64",
+            "--params",
+            '{"beams": 64}',
+        )
+    )
+    assert res.exit_code == 0, res.output
+    summary = json.loads(res.stdout)
+    assert summary["samples"] == 8 and summary["processed"] == 8 and summary["sequences"] == 4
+    assert summary["splits"] == {"test": 2, "train": 4, "val": 2}
+    assert set(summary["stage_seconds"]) >= {
+        "t_hash",
+        "t_encode",
+        "t_write",
+        "t_stage",
+        "t_finalize",
+    }
+    assert tree_hash(inputs) == before  # inputs untouched
+    row = DatasetReader(out).row("s1/0000")
+    assert row["source"] == "lidar-64" and row["fx"] == 30.0
+    assert json.loads(row["generation_params"])["params"] == {"beams": 64}
+
+    res = run(["dataset", "info", out])
+    assert res.exit_code == 0, res.output
+    assert "schema version" in res.stdout and "train" in res.stdout and f"{W}x{H} (8)" in res.stdout
+    info = json.loads(run(["dataset", "info", out, "--json"]).stdout)
+    assert info["schema_version"] == 1 and info["splits"]["train"]["samples"] == 4
+    assert info["with_intrinsics"] == 8 and info["sources"] == {"lidar-64": 8}
+    assert info["bytes"]["rgb"] > 0 and info["density_percent"]["max"] <= 100
+
+    res = run(["dataset", "verify", out])
+    assert res.exit_code == 0 and "no problem" in res.stdout
+
+    # a rerun resumes: nothing to do
+    res = run(build_args(inputs, out, "--json"))
+    assert res.exit_code == 0 and json.loads(res.stdout)["skipped_existing"] == 8
+
+
+def test_text_summary_and_workers(inputs, tmp_path):
+    res = run(build_args(inputs, tmp_path / "ds", "--workers", "2", "--sparse-format", "parquet"))
+    assert res.exit_code == 0, res.output
+    assert "samples" in res.stdout and "splits" in res.stdout and "train" in res.stdout
+    assert not list((tmp_path / "ds" / "sparse").rglob("*.png"))
+
+
+def test_verify_reports_problems_and_exits_1(inputs, tmp_path):
+    out = tmp_path / "ds"
+    assert run(build_args(inputs, out)).exit_code == 0
+    png = out / "sparse" / "s2" / "0001.png"
+    png.write_bytes(png.read_bytes()[:40])
+    res = run(["dataset", "verify", out])
+    assert res.exit_code == 1
+    assert "s2/0001" in res.stdout and "problem:" in res.stdout
+    assert "Traceback" not in res.output and res.stderr.count("\n") == 1
+    report = json.loads(run(["dataset", "verify", out, "--json"]).stdout)
+    assert len(report["problems"]) >= 1
+
+
+def test_usage_errors_exit_2(inputs, tmp_path):
+    out = tmp_path / "ds"
+    for extra in (
+        ["--split", "0.5,0.6"],
+        ["--split", "a,b,c"],
+        ["--sequence-from", "folder"],
+        ["--sequence-from", "regex:("],
+        ["--params", "[1, 2]"],
+        ["--split-file", tmp_path / "missing.txt"],
+    ):
+        res = run(build_args(inputs, out, *extra))
+        assert res.exit_code == 2, (extra, res.output)
+        assert "Traceback" not in res.output
+    (tmp_path / "train.txt").write_text("s1/0000\n")
+    res = run(build_args(inputs, out, "--split", "0.5,0.5", "--split-file", tmp_path / "train.txt"))
+    assert res.exit_code == 2
+    res = run(
+        ["dataset", "build", "-o", out, "--rgb", tmp_path / "nope", "--sparse", inputs / "sparse"]
+    )
+    assert res.exit_code == 2
+    assert not out.exists()
+
+
+def test_library_errors_exit_1_without_partial_output(inputs, tmp_path):
+    out = tmp_path / "ds"
+    write_depth_png(inputs / "sparse" / "s1" / "0001.png", np.ones((H + 1, W)))
+    before = tree_hash(inputs)
+    res = run(build_args(inputs, out))
+    assert res.exit_code == 1
+    assert "Traceback" not in res.output
+    err = res.stderr.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("Error:") and "s1/0001" in err[0]
+    assert not (out / MANIFEST_NAME).exists()
+    assert not list(out.rglob(".tmp-sparsetools-*"))
+    assert tree_hash(inputs) == before
+    res = run(["dataset", "info", tmp_path])
+    assert res.exit_code == 1 and "no such manifest" in res.stderr
+
+
+def test_split_file_option_and_link(inputs, tmp_path):
+    (tmp_path / "train.txt").write_text("s1/0000\ns1/0001\ns2/0000\n")
+    (tmp_path / "held.txt").write_text("s3 1\n")
+    out = tmp_path / "ds"
+    res = run(
+        build_args(
+            inputs,
+            out,
+            "--split-file",
+            tmp_path / "train.txt",
+            "--split-file",
+            f"holdout={tmp_path / 'held.txt'}",
+            "--link",
+            "--json",
+        )
+    )
+    assert res.exit_code == 0, res.output
+    summary = json.loads(res.stdout)
+    assert summary["splits"] == {"holdout": 1, "train": 3}
+    assert summary["unmatched"]["not_in_split_files"] == 4
+    src = inputs / "rgb" / "s1" / "0000.png"
+    assert (out / "rgb" / "s1" / "0000.png").stat().st_ino == src.stat().st_ino
+    assert DatasetReader(out).split("holdout").ids == ["s3/0001"]
