@@ -43,6 +43,14 @@ _LAZY = {
     "build_dataset": ".pipeline.dataset",
     "verify_dataset": ".pipeline.dataset",
     "depth_stats": ".ops.stats",
+    "lowlight": ".ops.lowlight",
+    "LowLightParams": ".ops.lowlight",
+    "LowLightRecord": ".ops.lowlight",
+    "flare_bank": ".ops.flare",
+    "mcie_lut": ".ops.enhance",
+    "apply_lut": ".ops.enhance",
+    "UnderwaterCompensator": ".ops.underwater",
+    "median_failure_probability": ".ops.underwater",
     "run_frames": ".pipeline",
 }
 

@@ -65,7 +65,7 @@ def equalize_frame(task: FrameTask) -> dict:
 
 def _lut_document(reference: Path, clip: float, lut: np.ndarray) -> dict:
     return {
-        "method": "MCIE (RNW): per-channel clipped histogram equalisation, one table for all frames",
+        "method": "MCIE (RNW): per-channel clipped histogram equalisation, one table for all",
         "reference": str(reference),
         "clip": clip,
         "lut": [lut[:, c].tolist() for c in range(lut.shape[1])],
@@ -107,7 +107,8 @@ def run_equalize(
         if old.get("lut") != doc["lut"]:
             raise OutputError(
                 f"{out_dir} holds frames equalised with another table (reference "
-                f"{old.get('reference')}, clip {old.get('clip')}); use --overwrite or another folder"
+                f"{old.get('reference')}, clip {old.get('clip')}); use --overwrite or another "
+                "folder"
             )
     tasks = equalize_tasks(files, out_dir, lut)
     with atomic_path(lut_path) as tmp:

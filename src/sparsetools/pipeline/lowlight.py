@@ -68,14 +68,15 @@ def collect_images(paths) -> list[Path]:
 class LowLightJob:
     """Settings shared by every frame (picklable)."""
 
-    out_dir: str
     seed: int
     variants: int
     params: dict
 
     def config(self) -> dict:
         """JSON-normalised settings (tuples as lists), comparable with a sidecar's copy."""
-        return json.loads(json.dumps({"seed": self.seed, "params": self.params}))
+        return json.loads(
+            json.dumps({"seed": self.seed, "variants": self.variants, "params": self.params})
+        )
 
 
 def _output_name(stem: str, variant: int, variants: int) -> str:
@@ -124,7 +125,7 @@ def lowlight_tasks(
         and calib_p.is_dir()
         and not ((calib_p / "calib_cam_to_cam.txt").is_file())
     )
-    job = LowLightJob(str(out_dir), int(seed), int(variants), params.to_dict())
+    job = LowLightJob(int(seed), int(variants), params.to_dict())
     out = Path(out_dir)
     tasks = []
     missing = []
@@ -247,21 +248,21 @@ def write_manifest(out_dir: str | os.PathLike, tasks: list[FrameTask]) -> tuple[
     return path, len(rows)
 
 
-def _check_existing(tasks: list[FrameTask], job_config: dict, overwrite: bool) -> None:
-    """Refuse to resume into outputs made with other settings (they would be mixed)."""
+def _check_existing(out_dir: str | os.PathLike, job_config: dict, overwrite: bool) -> None:
+    """Refuse to add to a folder holding outputs made with other settings (they would mix)."""
     if overwrite:
         return
-    for t in tasks:
-        n_out = len(t.outputs) // 2
-        for p in t.outputs[n_out:]:
-            p = Path(p)
-            if p.is_file():
-                if _read_sidecar(p).get("config") != job_config:
-                    raise OutputError(
-                        f"{p.parent.parent} holds night images made with other settings "
-                        "(seed or parameters); use --overwrite or another output folder"
-                    )
-                return  # one sidecar per run is enough: a run writes one configuration
+    records = Path(out_dir) / RECORDS
+    if not records.is_dir():
+        return
+    # Every run writes one configuration, so one sidecar tells which one the folder holds.
+    for p in sorted(records.glob("*.json")):
+        if _read_sidecar(p).get("config") != job_config:
+            raise OutputError(
+                f"{out_dir} holds night images made with other settings (seed, variants or "
+                "parameters); use --overwrite or another output folder"
+            )
+        return
 
 
 def run_lowlight(
@@ -293,7 +294,7 @@ def run_lowlight(
     check_output_dir(out_dir, inputs)
     tasks = lowlight_tasks(images, out_dir, depth=depth, calib=calib, seed=seed,
                            variants=variants, params=params)  # fmt: skip
-    _check_existing(tasks, tasks[0].inputs["job"].config(), overwrite)
+    _check_existing(out_dir, tasks[0].inputs["job"].config(), overwrite)
     if calib is not None and depth is None:
         log.warning("--calib without --depth: the calibration is only used to place flares in 3-D")
     summary = run_frames(

@@ -175,7 +175,7 @@ def run_underwater(
         "window": int(window), "eps": float(eps), "white_balance": bool(white_balance),
         "a_ref": [float(v) for v in comp.a_ref], "frames": len(files),
         "water_frames": len(water_files), "first_frame": str(files[0]),
-        "backscatter_file": str(out / BACKSCATTER_FILE),
+        "backscatter_file": BACKSCATTER_FILE,  # relative to OUT
     }  # fmt: skip
     settings_path = out / SETTINGS_FILE
     if settings_path.is_file() and not overwrite:
@@ -192,7 +192,8 @@ def run_underwater(
         np.save(fh, comp.backscatter)
     with atomic_path(settings_path) as tmp:
         tmp.write_text(json.dumps(settings, indent=1) + "\n", encoding="utf-8")
-    tasks = underwater_tasks(files, out_dir, window=window, settings=settings)
+    task_settings = {**settings, "backscatter_file": str(out / BACKSCATTER_FILE)}
+    tasks = underwater_tasks(files, out_dir, window=window, settings=task_settings)
     summary = run_frames(underwater_segment, tasks, executor=executor, overwrite=overwrite,
                          on_error=on_error, progress=progress, desc="underwater")  # fmt: skip
     result = summary.as_dict()  # frames / processed / skipped count segments (tasks)

@@ -1,0 +1,75 @@
+"""``sparsetools equalize``: mapping-consistent image enhancement (MCIE) of a sequence."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import click
+
+from .options import batch_options, emit_summary, executor_from, output_dir_option, progress_enabled
+
+
+def _clip_limit(ctx, param, value):
+    if value is not None and not (math.isfinite(value) and value > 0):
+        raise click.BadParameter(
+            f"clip limit must be > 0 (a fraction of the pixel count), got {value}"
+        )
+    return value
+
+
+@click.command("equalize")
+@click.argument("images", nargs=-1, required=True, type=click.Path(exists=True, path_type=Path))
+@output_dir_option
+@click.option(
+    "--clip",
+    type=float,
+    default=0.004,
+    show_default=True,
+    callback=_clip_limit,
+    help="Histogram clip limit as a fraction of the pixel count (RobotCar: 0.008).",
+)
+@click.option(
+    "--reference",
+    metavar="FRAME",
+    help="Frame whose histogram makes the table: a path or the stem of an input "
+    "[default: the first image].",
+)
+@batch_options
+def equalize(
+    images,
+    out_dir,
+    clip,
+    reference,
+    workers,
+    overwrite,
+    on_error,
+    executor,
+    dask_scheduler,
+    as_json,
+):
+    """Equalise images with ONE clipped-histogram table per channel (RNW's MCIE).
+
+    The table comes from the reference frame (256 bins, clip limit = CLIP x pixel count,
+    overflow spread uniformly) and maps every frame with cv2.LUT, so the same grey level
+    becomes the same output level in all frames (photometric losses stay valid). Writes
+    OUT/<stem>.png and the table as OUT/mcie_lut.json.
+
+    \b
+    Examples:
+      sparsetools equalize out/night -o out/night_mcie
+      sparsetools equalize seq/ -o out/eq --reference 000010 --clip 0.008
+    """
+    from ..pipeline.equalize import run_equalize
+
+    summary = run_equalize(
+        images,
+        out_dir,
+        clip=clip,
+        reference=reference,
+        executor=executor_from(locals()),
+        overwrite=overwrite,
+        on_error=on_error,
+        progress=progress_enabled(),
+    )
+    emit_summary(summary, as_json=as_json, title=f"equalised frames written to {out_dir}")

@@ -1,0 +1,113 @@
+"""Mapping-consistent image enhancement (MCIE) of RNW (arXiv 2108.03830), METHODS.md section 4.
+
+A global, per-channel clipped histogram equalisation: the 256-bin histogram of the
+reference (target) frame is clipped at ``clip * pixel count``, the overflow is spread
+uniformly over all bins (once, not iteratively as CLAHE does), and
+
+    lut(b) = round((cdf(b) - cdf_min) / (cdf_max - cdf_min) * 255)
+
+with ``cdf_min`` the smallest non-zero value of the cumulative histogram. The same table is
+applied to every frame of the sequence (``cv2.LUT``), so brightness stays consistent between
+target and source frames and the photometric loss remains valid.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..errors import ParameterError
+
+__all__ = ["apply_lut", "mcie_lut"]
+
+
+def _check_rgb8(image: np.ndarray, what: str) -> np.ndarray:
+    if not isinstance(image, np.ndarray):
+        raise ParameterError(f"{what} must be a numpy array, got {type(image).__name__}")
+    if image.dtype != np.uint8:
+        raise ParameterError(f"{what} must be 8-bit (uint8), got {image.dtype}")
+    if image.ndim == 2:
+        image = image[:, :, None]
+    if image.ndim != 3 or image.shape[2] not in (1, 3):
+        raise ParameterError(f"{what} must be (H, W) or (H, W, 3), got shape {image.shape}")
+    if image.shape[0] * image.shape[1] == 0:
+        raise ParameterError(f"{what} is empty (shape {image.shape})")
+    return image
+
+
+def mcie_lut(reference: np.ndarray, *, clip: float = 0.004, bins: int = 256) -> np.ndarray:
+    """Per-channel MCIE lookup table built from one reference frame.
+
+    Parameters
+    ----------
+    reference : (H, W, 3) or (H, W) uint8
+        The target frame.
+    clip : float
+        Clip limit as a fraction of the pixel count (RNW: 0.004; 0.008 for RobotCar);
+        1 or more disables clipping (plain histogram equalisation).
+    bins : int
+        Must be 256 (8-bit images); kept as a parameter to say so explicitly.
+
+    Returns
+    -------
+    lut : (256, C) uint8
+        ``lut[b, c]`` is the new value of level ``b`` in channel ``c``. A channel whose
+        cumulative histogram is flat after clipping (one level only and no clipping) keeps
+        the identity mapping.
+    """
+    if bins != 256:
+        raise ParameterError(f"MCIE works on 8-bit images with 256 bins, got bins={bins}")
+    if not (math.isfinite(clip) and clip > 0):
+        raise ParameterError(f"clip limit must be > 0, got {clip}")
+    ref = _check_rgb8(reference, "reference frame")
+    n_pix = ref.shape[0] * ref.shape[1]
+    limit = clip * n_pix
+    lut = np.empty((256, ref.shape[2]), np.uint8)
+    for c in range(ref.shape[2]):
+        hist = np.bincount(ref[:, :, c].ravel(), minlength=256).astype(np.float64)
+        excess = np.maximum(hist - limit, 0.0).sum()
+        hist = np.minimum(hist, limit) + excess / 256.0
+        cdf = np.cumsum(hist)
+        nonzero = cdf[cdf > 0]
+        cdf_min, cdf_max = nonzero[0], cdf[-1]
+        if cdf_max - cdf_min <= 0:
+            lut[:, c] = np.arange(256, dtype=np.uint8)
+            continue
+        mapped = (cdf - cdf_min) / (cdf_max - cdf_min) * 255.0
+        lut[:, c] = np.rint(np.clip(mapped, 0, 255)).astype(np.uint8)
+    return lut
+
+
+def apply_lut(image: np.ndarray, lut: np.ndarray) -> np.ndarray:
+    """Map ``image`` through a per-channel table with ``cv2.LUT``.
+
+    Parameters
+    ----------
+    image : (H, W, C) or (H, W) uint8
+    lut : (256, C) or (256,) uint8
+        From :func:`mcie_lut`; a single-channel table is applied to every channel.
+
+    Returns
+    -------
+    uint8 array of the shape of ``image``.
+    """
+    import cv2
+
+    img = _check_rgb8(image, "image")
+    lut = np.asarray(lut)
+    if lut.dtype != np.uint8 or lut.shape[0] != 256 or lut.ndim not in (1, 2):
+        raise ParameterError(f"lut must be (256,) or (256, C) uint8, got {lut.dtype} {lut.shape}")
+    if lut.ndim == 2 and lut.shape[1] == 1:
+        lut = lut[:, 0]
+    channels = img.shape[2]
+    if lut.ndim == 2 and lut.shape[1] != channels:
+        raise ParameterError(f"lut has {lut.shape[1]} channels but the image has {channels}")
+    if lut.ndim == 1:
+        table = np.ascontiguousarray(lut.reshape(1, 256))
+        out = cv2.LUT(np.ascontiguousarray(img), table)
+    else:
+        # cv2.LUT maps channel c of the image through channel c of a (1, 256, C) table.
+        table = np.ascontiguousarray(lut.reshape(1, 256, channels))
+        out = cv2.LUT(np.ascontiguousarray(img), table)
+    return out.reshape(np.asarray(image).shape)

@@ -1,0 +1,126 @@
+"""MCIE: clipped histogram equalisation against independent references."""
+
+from __future__ import annotations
+
+from fractions import Fraction
+
+import numpy as np
+import pytest
+
+from sparsetools.errors import ParameterError
+from sparsetools.ops.enhance import apply_lut, mcie_lut
+
+
+def _reference_lut(channel: np.ndarray, clip: float) -> list[int]:
+    """Exact rational arithmetic, bin by bin, following RNW's description."""
+    n = channel.size
+    counts = [0] * 256
+    for v in channel.ravel().tolist():
+        counts[v] += 1
+    limit = Fraction(clip) * n
+    excess = sum(max(Fraction(c) - limit, 0) for c in counts)
+    hist = [min(Fraction(c), limit) + excess / 256 for c in counts]
+    cdf, acc = [], Fraction(0)
+    for h in hist:
+        acc += h
+        cdf.append(acc)
+    cdf_min = next(c for c in cdf if c > 0)
+    cdf_max = cdf[-1]
+    if cdf_max == cdf_min:
+        return list(range(256))
+    out = []
+    for c in cdf:
+        # Levels below the darkest one present have cdf < cdf_min: they map to 0.
+        x = max(c - cdf_min, 0) / (cdf_max - cdf_min) * 255
+        out.append(int(round(x)))  # Python rounds half to even, as numpy.rint does
+    return out
+
+
+def _images():
+    rng = np.random.default_rng(0)
+    dark = np.clip(rng.gamma(2.0, 8.0, (60, 80, 3)), 0, 255).astype(np.uint8)  # a night frame
+    mid = rng.integers(90, 140, (33, 47, 3), dtype=np.uint8)  # low contrast
+    spiky = np.zeros((40, 40, 3), np.uint8)
+    spiky[:20] = 200
+    spiky[20:, :5] = rng.integers(0, 256, (20, 5, 3), dtype=np.uint8)
+    return [dark, mid, spiky]
+
+
+@pytest.mark.parametrize("clip", [0.004, 0.008, 0.05, 1.0])
+def test_lut_matches_exact_reference(clip):
+    for img in _images():
+        lut = mcie_lut(img, clip=clip)
+        assert lut.shape == (256, 3) and lut.dtype == np.uint8
+        for c in range(3):
+            assert lut[:, c].tolist() == _reference_lut(img[:, :, c], clip)
+
+
+def test_without_clipping_equals_opencv_equalize_hist():
+    import cv2
+
+    for img in _images():
+        lut = mcie_lut(img, clip=1.0)
+        for c in range(3):
+            ch = np.ascontiguousarray(img[:, :, c])
+            if len(np.unique(ch)) == 1:
+                continue  # OpenCV returns the input for a constant image; so does the identity
+            np.testing.assert_array_equal(apply_lut(ch, lut[:, c]), cv2.equalizeHist(ch))
+
+
+def test_lut_properties():
+    for img in _images():
+        lut = mcie_lut(img).astype(int)
+        assert np.all(np.diff(lut, axis=0) >= 0)  # monotone: order of grey levels is kept
+        assert lut.max() == 255  # the brightest level maps to white
+        # Clipping bounds the slope: a clipped bin holds at most limit + excess / 256 pixels.
+        n = img.shape[0] * img.shape[1]
+        for c in range(3):
+            counts = np.bincount(img[:, :, c].ravel(), minlength=256)
+            limit = 0.004 * n
+            excess = np.maximum(counts - limit, 0).sum()
+            clipped = np.minimum(counts, limit) + excess / 256
+            cdf = np.cumsum(clipped)
+            bound = 255 * (limit + excess / 256) / (n - cdf[cdf > 0][0]) + 1
+            assert np.max(np.diff(lut[:, c])) <= bound
+
+
+def test_apply_lut_matches_indexing():
+    rng = np.random.default_rng(1)
+    lut = rng.integers(0, 256, (256, 3), dtype=np.uint8)
+    img = rng.integers(0, 256, (17, 23, 3), dtype=np.uint8)
+    expected = np.stack([lut[img[:, :, c], c] for c in range(3)], axis=2)
+    np.testing.assert_array_equal(apply_lut(img, lut), expected)
+    # One table for every channel, and a grey image.
+    np.testing.assert_array_equal(apply_lut(img, lut[:, 1]), lut[:, 1][img])
+    grey = img[:, :, 0]
+    np.testing.assert_array_equal(apply_lut(grey, lut[:, 0]), lut[grey, 0])
+
+
+def test_one_lut_for_all_frames_keeps_mapping_consistent():
+    """The point of MCIE: equal input levels give equal outputs in target and source frames."""
+    rng = np.random.default_rng(2)
+    target = rng.integers(0, 80, (30, 40, 3), dtype=np.uint8)
+    source = np.roll(target, 3, axis=1)
+    lut = mcie_lut(target)
+    a, b = apply_lut(target, lut), apply_lut(source, lut)
+    np.testing.assert_array_equal(np.roll(a, 3, axis=1), b)
+    assert a.mean() > target.mean()  # a dark frame gets brighter
+
+
+def test_constant_image_and_bad_input():
+    flat = np.full((10, 10, 3), 77, np.uint8)
+    lut = mcie_lut(flat)
+    assert np.all(np.diff(lut.astype(int), axis=0) >= 0)
+    np.testing.assert_array_equal(mcie_lut(flat, clip=1.0)[:, 0], np.arange(256))
+    with pytest.raises(ParameterError, match="8-bit"):
+        mcie_lut(np.zeros((4, 4, 3), np.uint16))
+    with pytest.raises(ParameterError):
+        mcie_lut(flat, clip=0)
+    with pytest.raises(ParameterError):
+        mcie_lut(flat, bins=128)
+    with pytest.raises(ParameterError):
+        mcie_lut(np.zeros((0, 4, 3), np.uint8))
+    with pytest.raises(ParameterError):
+        apply_lut(flat, np.zeros((256, 2), np.uint8))
+    with pytest.raises(ParameterError):
+        apply_lut(flat, np.zeros(255, np.uint8))
