@@ -60,7 +60,12 @@ class DaskExecutor:
         from distributed import Client, LocalCluster
 
         # distributed logs INFO lines (cluster start, worker addresses) on stderr: keep it quiet.
-        for name in ("distributed", "distributed.scheduler", "distributed.nanny", "distributed.worker"):
+        for name in (
+            "distributed",
+            "distributed.scheduler",
+            "distributed.nanny",
+            "distributed.worker",
+        ):
             logging.getLogger(name).setLevel(logging.WARNING)
 
         if self.scheduler:
