@@ -24,7 +24,7 @@ import logging
 import math
 import os
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -89,7 +89,6 @@ class JbfSettings:
     confidence: bool = True
     conf_format: str = "png"
     max_depth: float = 80.0
-    extra: dict = field(default_factory=dict, compare=False)
 
     def check(self) -> None:
         """Validate every option before any frame runs (one clear error, no partial output)."""
@@ -140,8 +139,9 @@ def _find_by_stem(folder: Path, stem: str, suffixes: tuple[str, ...]) -> Path | 
 def discover_radar(paths: list[str | os.PathLike]) -> list[Path]:
     """Radar inputs: files as given, folders expanded to their ``*.png`` and ``*.pcd``.
 
-    In a folder, ``<frame>_sweep<k>.pcd`` is left out when ``<frame>.pcd`` is there too: those
-    are the single sweeps of a merged multi-sweep frame (the layout ``synth-scene`` writes).
+    In a folder, ``<frame>_sweep<k>.pcd`` (or ``.png``) is left out when ``<frame>.pcd`` (or
+    ``.png``) is there too: those are the single sweeps of a merged multi-sweep frame (the
+    layout ``synth-scene`` writes, and ``project`` keeps).
     """
     out: list[Path] = []
     for p in map(Path, paths):
@@ -155,7 +155,7 @@ def discover_radar(paths: list[str | os.PathLike]) -> list[Path]:
             kept = []
             for c in found:
                 m = _SWEEP.match(c.stem)
-                if c.suffix.lower() == ".pcd" and m and f"{m['frame']}{c.suffix}" in names:
+                if m and f"{m['frame']}{c.suffix}" in names:
                     continue
                 kept.append(c)
             if not kept:
@@ -178,6 +178,8 @@ def _per_frame(path: Path | None, stem: str, suffixes, what: str, n_frames: int)
     """The file of one frame: ``path`` itself (one frame only) or ``path/<stem><suffix>``."""
     if path is None:
         return None
+    if what == "calibration" and (path / "calib_cam_to_cam.txt").is_file():
+        return path  # a KITTI raw date folder: one calibration for every frame
     if path.is_dir():
         found = _find_by_stem(path, stem, suffixes)
         if found is None:
@@ -241,7 +243,7 @@ def build_tasks(
     image_path = Path(image)
     lidar_path = Path(lidar) if lidar is not None else None
     out = Path(out_dir)
-    inputs = {Path(p) for p in radar} | {f.parent for f in files} | {image_path}
+    inputs = {Path(p) for p in radar} | {image_path}
     if lidar_path is not None:
         inputs.add(lidar_path)
     n = len(files)
@@ -251,21 +253,20 @@ def build_tasks(
         outputs = [out / f"{stem}.png"]
         if settings.confidence:
             outputs.append(out / f"{stem}_conf.{settings.conf_format}")
+        frame_inputs = {
+            "radar": str(f),
+            "image": str(_per_frame(image_path, stem, IMAGE_SUFFIXES, "image", n)),
+            "calib": _str(_per_frame(calib_path, stem, CALIB_SUFFIXES, "calibration", n)),
+            "lidar": _str(_per_frame(lidar_path, stem, (".png",), "LiDAR depth", n)),
+        }
+        sources = {Path(v).resolve() for v in frame_inputs.values() if v is not None}
         for o in outputs:
-            if o.resolve() == f.resolve():
-                raise ParameterError(f"output {o} would overwrite its input")
+            if o.resolve() in sources:
+                raise ParameterError(f"output {o} would overwrite an input of frame {stem}")
         tasks.append(
             FrameTask(
                 frame_id=stem,
-                inputs={
-                    "radar": str(f),
-                    "image": str(_per_frame(image_path, stem, IMAGE_SUFFIXES, "image", n)),
-                    "calib": _str(_per_frame(calib_path, stem, CALIB_SUFFIXES, "calibration", n)),
-                    "lidar": _str(_per_frame(lidar_path, stem, (".png",), "LiDAR depth", n)),
-                    "fx": fx,
-                    "fy": fy,
-                    "settings": settings,
-                },
+                inputs={**frame_inputs, "fx": fx, "fy": fy, "settings": settings},
                 outputs=tuple(outputs),
             )
         )
@@ -340,7 +341,8 @@ def _write_confidence(path: Path, confidence: np.ndarray, fmt: str) -> None:
             with open(tmp, "wb") as fh:
                 np.save(fh, confidence.astype(np.float32))
         else:
-            scaled = np.rint(np.clip(confidence, 0.0, 1.0) * 65535.0).astype(np.uint16)
+            c = np.clip(confidence.astype(np.float64), 0.0, 1.0)
+            scaled = np.rint(c * 65535.0).astype(np.uint16)
             ok, buf = cv2.imencode(".png", scaled)
             if not ok:  # pragma: no cover - OpenCV always encodes uint16 PNG
                 raise FormatError(f"{path}: OpenCV failed to encode the confidence PNG")
