@@ -136,7 +136,10 @@ def test_missing_open3d_names_the_fix(monkeypatch, tmp_path):
         return real_import(name, *args, **kwargs)
 
     monkeypatch.setattr(builtins, "__import__", fake_import)
-    (tmp_path / "a.ply").write_bytes(b"ply\n")
+    (tmp_path / "a.ply").write_bytes(
+        b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\n"
+        b"property float y\nproperty float z\nend_header\n" + np.zeros(3, "<f4").tobytes()
+    )
     with pytest.raises(DependencyError, match="apt-get install -y libusb-1.0-0"):
         read_points(tmp_path / "a.ply")
 

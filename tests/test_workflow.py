@@ -18,14 +18,14 @@ steps:
   - name: scene
     run: synth-scene ${scene} --frames ${frames} --image-size 64x24 --underwater-frames 0 --seed 3
   - name: again
-    run: [sparsetools, synth-scene, "${scene}", --frames, "${frames}", --image-size, 64x24, --underwater-frames, "0", --seed, "3"]
+    run: [sparsetools, synth-scene, "${scene}", --frames, "${frames}", --image-size, 64x24, --underwater-frames, "0", --seed, "3", --overwrite]
 """
 
 
 def test_variables_and_both_run_forms(tmp_path):
     (tmp_path / "c.yaml").write_text(CONFIG)
     wf = load_workflow(tmp_path / "c.yaml", out_dir=tmp_path / "o", overrides={"frames": "2"})
-    assert wf.steps[0].run == wf.steps[1].run
+    assert wf.steps[1].run == [*wf.steps[0].run, "--overwrite"]
     assert wf.steps[0].run[:2] == ["synth-scene", str(tmp_path / "o" / "scene")]
     assert wf.steps[0].run[3] == "2"
 

@@ -151,7 +151,9 @@ def _run_step(step: Step) -> StepResult:
     code = 0
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
         try:
-            cli.main(args=["-q", *step.run], prog_name="sparsetools", standalone_mode=False)
+            # With standalone_mode=False click returns the code of ctx.exit(n) instead of exiting.
+            ret = cli.main(args=["-q", *step.run], prog_name="sparsetools", standalone_mode=False)
+            code = ret if isinstance(ret, int) else 0
         except SystemExit as exc:  # ctx.exit() inside commands
             code = int(exc.code or 0)
         except SparsetoolsError as exc:
