@@ -35,3 +35,14 @@ def test_bad_sizes_are_usage_errors(tmp_path):
     assert r.exit_code == 2 and "WxH" in r.stderr
     r = CliRunner().invoke(cli, ["synth-scene", str(tmp_path / "a"), "--frames", "0"])
     assert r.exit_code == 2
+
+
+def test_stem_prefix_names_files_and_survives_check(tmp_path):
+    runner = CliRunner()
+    r = runner.invoke(cli, ["synth-scene", str(tmp_path / "a"), *SMALL, "--stem-prefix", "s7_"])
+    assert r.exit_code == 0, r.output
+    assert sorted(p.name for p in (tmp_path / "a" / "image_2").iterdir()) == ["s7_000000.png"]
+    r = runner.invoke(cli, ["synth-scene", str(tmp_path / "b"), "--check", str(tmp_path / "a")])
+    assert r.exit_code == 0, r.output
+    r = runner.invoke(cli, ["synth-scene", str(tmp_path / "c"), *SMALL, "--stem-prefix", "../x"])
+    assert r.exit_code == 1 and "stem prefix" in r.stderr

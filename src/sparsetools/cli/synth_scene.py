@@ -34,6 +34,13 @@ from .options import emit_summary, size_wxh
     show_default=True,
     help="Frames of the underwater sequence (0 = none).",
 )
+@click.option(
+    "--stem-prefix",
+    default="",
+    metavar="TEXT",
+    help="Prefix of the frame file names (s1_ gives s1_000000.png): lets several "
+    "sequences share one dataset without name clashes.",
+)
 @click.option("--overwrite", is_flag=True, help="Replace existing files in OUT_DIR.")
 @click.option(
     "--check",
@@ -44,7 +51,7 @@ from .options import emit_summary, size_wxh
 )
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 def synth_scene(
-    out_dir, seed, frames, image_size, underwater_frames, overwrite, check_dir, as_json
+    out_dir, seed, frames, image_size, underwater_frames, stem_prefix, overwrite, check_dir, as_json
 ):
     """Generate a synthetic KITTI-like street scene with exact ground truth.
 
@@ -91,5 +98,6 @@ def synth_scene(
         height=height,
         underwater_frames=underwater_frames,
         overwrite=overwrite,
+        stem_prefix=stem_prefix,
     )
     emit_summary(summary, as_json=as_json, title=f"synthetic scene written to {out_dir}")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -149,6 +150,7 @@ def generate_scene(
     underwater_size: tuple[int, int] = (160, 120),
     overwrite: bool = False,
     progress: Callable[[int], None] | None = None,
+    stem_prefix: str = "",
 ) -> dict:
     """Write a synthetic street sequence (KITTI layout) and an underwater sequence.
 
@@ -169,6 +171,9 @@ def generate_scene(
         Underwater image size, pixels.
     overwrite : bool
         Replace files in a non-empty ``out_dir`` (files not written by this run are left alone).
+    stem_prefix : str
+        Prefix of every frame's file stem (e.g. ``"s3_"`` -> ``s3_000000``), so several
+        sequences can share dataset folders with unique names.
     progress : callable(n_done), optional
         Called after each street frame with the number of street frames done.
 
@@ -188,6 +193,10 @@ def generate_scene(
     """
     seed = _check_int("seed", seed, 0)
     frames = _check_int("frames", frames, 1)
+    if not isinstance(stem_prefix, str) or not re.fullmatch(r"[A-Za-z0-9_-]*", stem_prefix):
+        raise ParameterError(
+            f"stem prefix may hold only letters, digits, '_' and '-', got {stem_prefix!r}"
+        )
     width = _check_int("width", width, 16)
     height = _check_int("height", height, 16)
     underwater_frames = _check_int("underwater_frames", underwater_frames, 0)
@@ -214,7 +223,7 @@ def generate_scene(
     calib = rig.calibration
     radar_calib = rig.radar_calibration
     for frame in range(frames):
-        stem = f"{frame:06d}"
+        stem = f"{stem_prefix}{frame:06d}"
         origin = ego_origin(frame, rig)
         layout = street_layout(seed, origin[0] - BEHIND_M, origin[0] + AHEAD_M)
         f = simulate_frame(seed, frame, rig=rig, layout=layout, textures=textures, sun=sun)
@@ -281,7 +290,8 @@ def generate_scene(
         "format_version": FORMAT_VERSION,
         "seed": seed,
         "frames": frames,
-        "stems": [f"{i:06d}" for i in range(frames)],
+        "stems": [f"{stem_prefix}{i:06d}" for i in range(frames)],
+        "stem_prefix": stem_prefix,
         "step_m": STEP_M,
         "poses": {
             "convention": "T_world_from_velo; world x along the street, y left, z up, "

@@ -68,5 +68,6 @@ def regenerate_and_compare(reference: str | os.PathLike, out_dir: str | os.PathL
         underwater_frames=uw_frames,
         underwater_size=uw_size,
         overwrite=True,
+        stem_prefix=str(meta.get("stem_prefix", "")),
     )
     return compare_trees(ref, out_dir)
