@@ -56,7 +56,10 @@ def _params_callback(ctx, param, value):
         p = Path(value)
         if not p.is_file():
             raise click.BadParameter("expected a JSON object or a JSON file")
-        text = p.read_text(encoding="utf-8")
+        try:
+            text = p.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as exc:
+            raise click.BadParameter(f"cannot read {value} as UTF-8 JSON ({exc})") from None
     try:
         obj = json.loads(text)
     except json.JSONDecodeError as exc:

@@ -99,6 +99,11 @@ def viz(
         )
     if out_path.suffix.lower() not in (".png", ".jpg", ".jpeg"):
         raise click.BadParameter("output must be .png or .jpg", param_hint="--out")
+    inputs = {p.resolve() for p in (*depth, *([image] if image is not None else []))}
+    if out_path.resolve() in inputs:
+        from ..errors import OutputError
+
+        raise OutputError(f"output {out_path} would replace an input file: choose another -o")
     if labels is None:
         labels = _default_labels(list(depth)) if len(depth) > 1 else None
     elif labels == [""]:

@@ -12,6 +12,7 @@ optionally with ``"P"`` (3x4). The mmdetection3d-derived nuScenes JSON (``camera
 from __future__ import annotations
 
 import json
+import math
 import os
 from pathlib import Path
 
@@ -154,6 +155,21 @@ def _as_array(d: dict, key: str, shape: tuple[int, int], path: Path) -> np.ndarr
     return a
 
 
+def _size(d: dict, key: str, default, path: Path) -> int | None:
+    value = d.get(key, default)
+    if value is None:
+        return None
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, (int, float))
+        or not math.isfinite(value)
+        or value != int(value)
+        or value <= 0
+    ):
+        raise CalibrationError(f"{path}: key '{key}' must be a positive integer, got {value!r}")
+    return int(value)
+
+
 def read_json_calib(path: str | os.PathLike, *, camera: str | int | None = None) -> Calibration:
     """Read a JSON calibration (plain form, or the nuScenes ``cameras`` form; see module doc)."""
     path = Path(path)
@@ -163,18 +179,39 @@ def read_json_calib(path: str | os.PathLike, *, camera: str | int | None = None)
         raise CalibrationError(f"{path}: no such calibration file") from exc
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise CalibrationError(f"{path}: not valid JSON ({exc})") from exc
+    except RecursionError as exc:
+        raise CalibrationError(f"{path}: not valid JSON (nested too deeply)") from exc
+    except OSError as exc:
+        raise CalibrationError(f"{path}: cannot read ({exc.strerror or exc})") from exc
     if not isinstance(d, dict):
         raise CalibrationError(f"{path}: expected a JSON object")
+    try:
+        return _json_calibration(d, path, camera)
+    except CalibrationError:
+        raise
+    except (TypeError, ValueError, KeyError, AttributeError, OverflowError) as exc:
+        # A value of the wrong JSON type somewhere (a list for a number, a number for a table).
+        raise CalibrationError(
+            f"{path}: malformed calibration ({type(exc).__name__}: {exc})"
+        ) from exc
+
+
+def _json_calibration(d: dict, path: Path, camera) -> Calibration:
     if "cameras" in d:
+        cameras = d["cameras"]
+        if not isinstance(cameras, dict):
+            raise CalibrationError(f"{path}: 'cameras' must be an object of cameras by name")
         name = camera if isinstance(camera, str) else "CAM_FRONT"
-        if name not in d["cameras"]:
+        if name not in cameras:
             raise CalibrationError(
-                f"{path}: no camera '{name}' (has {', '.join(sorted(d['cameras']))})"
+                f"{path}: no camera '{name}' (has {', '.join(sorted(map(str, cameras)))})"
             )
-        cam = d["cameras"][name]
+        cam = cameras[name]
+        if not isinstance(cam, dict):
+            raise CalibrationError(f"{path}: camera '{name}' must be an object")
         K = _as_array(cam, "cam2img", (3, 3), path)
         T = _as_array(cam, "lidar2cam", (4, 4), path)
-        w, h = cam.get("width", 1600), cam.get("height", 900)
+        w, h = _size(cam, "width", 1600, path), _size(cam, "height", 900, path)
         return Calibration(K=K, T_cam_from_sensor=T, width=w, height=h, source=f"{path}:{name}")
     K = _as_array(d, "K", (3, 3), path)
     T = _as_array(d, "T_cam_from_sensor", (4, 4), path)
@@ -186,8 +223,8 @@ def read_json_calib(path: str | os.PathLike, *, camera: str | int | None = None)
         K=K,
         T_cam_from_sensor=T,
         P=P,
-        width=d.get("width"),
-        height=d.get("height"),
+        width=_size(d, "width", None, path),
+        height=_size(d, "height", None, path),
         source=str(path),
         extra=extra,
     )

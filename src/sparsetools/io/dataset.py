@@ -116,6 +116,11 @@ PART_SCHEMA = pa.schema(
 PATH_COLUMNS = ("rgb_path", "sparse_path", "sparse_parquet", "gt_path", "confidence_path")
 
 
+def _brief(exc: BaseException) -> str:
+    """An exception's text on one line (Arrow's messages span several)."""
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
 # -- paths -------------------------------------------------------------------------------------
 def check_relative_path(rel: str, *, what: str = "path") -> str:
     """Validate a dataset-relative path and return it.
@@ -237,12 +242,9 @@ def points_to_depth(
 
 # -- depth-like files ------------------------------------------------------------------------------
 def _load_npy(data: bytes, source: str) -> np.ndarray:
-    import io
+    from .npy import load_npy
 
-    try:
-        arr = np.load(io.BytesIO(data), allow_pickle=False)
-    except (ValueError, OSError, EOFError) as exc:
-        raise FormatError(f"{source}: not a readable .npy array ({exc})") from exc
+    arr = load_npy(data, source=source, invalid="not a readable .npy array")
     if not isinstance(arr, np.ndarray):
         raise FormatError(f"{source}: expected one array in the .npy file")
     if arr.ndim == 3 and arr.shape[2] == 1:
@@ -264,7 +266,8 @@ def decode_depth_bytes(data: bytes, suffix: str, *, source: str = "depth") -> np
     if suffix == ".png":
         return decode_depth_png(data, source=source)
     if suffix == ".npy":
-        arr = _load_npy(data, source).astype(np.float32, copy=False)
+        with np.errstate(over="ignore", invalid="ignore"):  # beyond float32: Inf, invalid
+            arr = _load_npy(data, source).astype(np.float32, copy=False)
         with np.errstate(invalid="ignore"):
             bad = ~(np.isfinite(arr) & (arr > 0))
         if bad.any():
@@ -295,13 +298,19 @@ def decode_confidence_bytes(data: bytes, suffix: str, *, source: str = "confiden
     """Decode a confidence map: PNG (uint16 / 65535 or uint8 / 255) or ``.npy`` as float32."""
     suffix = suffix.lower()
     if suffix == ".npy":
-        return _load_npy(data, source).astype(np.float32, copy=False)
+        with np.errstate(over="ignore", invalid="ignore"):
+            return _load_npy(data, source).astype(np.float32, copy=False)
     if suffix == ".png":
-        import cv2
+        from .image import check_pixel_count, image_header_size, imdecode_captured, import_cv2
 
-        img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+        cv2 = import_cv2()
+        size = image_header_size(data)
+        if size is not None:
+            check_pixel_count(*size, f"{source}: declared size")
+        img, detail = imdecode_captured(data, cv2.IMREAD_UNCHANGED, source=source)
         if img is None:
-            raise FormatError(f"{source}: cannot decode confidence PNG (corrupt?)")
+            why = f": {detail}" if detail else ""
+            raise FormatError(f"{source}: cannot decode confidence PNG (corrupt?){why}")
         if img.ndim != 2:
             raise FormatError(f"{source}: a confidence PNG must be single-channel")
         scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(img.dtype)
@@ -363,7 +372,7 @@ def read_manifest(path: str | os.PathLike) -> tuple[pa.Table, dict]:
     try:
         table = pq.read_table(path)
     except (pa.ArrowException, OSError) as exc:
-        raise FormatError(f"{path}: cannot read the manifest ({exc})") from exc
+        raise FormatError(f"{path}: cannot read the manifest ({_brief(exc)})") from exc
     meta = table.schema.metadata or {}
     raw = meta.get(METADATA_VERSION_KEY)
     if raw is None:
@@ -383,7 +392,9 @@ def read_manifest(path: str | os.PathLike) -> tuple[pa.Table, dict]:
     try:
         info = json.loads(meta.get(METADATA_INFO_KEY, b"{}").decode())
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise FormatError(f"{path}: corrupt dataset metadata ({exc})") from exc
+        raise FormatError(f"{path}: corrupt dataset metadata ({_brief(exc)})") from exc
+    if not isinstance(info, dict):
+        raise FormatError(f"{path}: corrupt dataset metadata (not a JSON object)")
     info["schema_version"] = version
     try:
         extra = [c for c in table.column_names if c not in MANIFEST_SCHEMA.names]
@@ -391,17 +402,45 @@ def read_manifest(path: str | os.PathLike) -> tuple[pa.Table, dict]:
         table = table.cast(
             pa.schema([*MANIFEST_SCHEMA, *(table.schema.field(c) for c in extra)], metadata=meta),
         )
+        table.validate(full=True)  # Parquet does not check that strings are UTF-8
     except (pa.ArrowInvalid, pa.ArrowNotImplementedError) as exc:
-        raise FormatError(f"{path}: manifest columns have unexpected types ({exc})") from exc
+        raise FormatError(
+            f"{path}: manifest columns have unexpected types ({_brief(exc)})"
+        ) from exc
     ids = table.column("id").to_pylist()
     if len(set(ids)) != len(ids):
         dup = sorted({i for i in ids if ids.count(i) > 1})
         raise FormatError(f"{path}: duplicate sample id(s) {', '.join(dup[:5])}")
+    _check_manifest_values(table, path)
     for col in PATH_COLUMNS:
         for rel in table.column(col).to_pylist():
             if rel is not None:
                 check_relative_path(rel, what=f"{path.name} column {col}")
     return table, info
+
+
+def _check_manifest_values(table: pa.Table, path: Path) -> None:
+    """Refuse values a reader would trip on: nulls in required columns, impossible sizes,
+    a Parquet reference without its row."""
+    from .image import MAX_IMAGE_PIXELS
+
+    for f in MANIFEST_SCHEMA:
+        if not f.nullable and table.column(f.name).null_count:
+            raise FormatError(f"{path}: column {f.name} holds empty (null) values")
+    w = table.column("width").to_numpy().astype(np.int64)
+    h = table.column("height").to_numpy().astype(np.int64)
+    if w.size and ((w <= 0).any() or (h <= 0).any() or (w * h > MAX_IMAGE_PIXELS).any()):
+        raise FormatError(f"{path}: a sample has an impossible image size (width, height)")
+    part = table.column("sparse_parquet").is_valid().to_numpy(zero_copy_only=False)
+    if (part & (np.maximum(w, h) > MAX_SIDE)).any():
+        raise FormatError(f"{path}: a sample with Parquet points is over {MAX_SIDE} px on a side")
+    row = table.column("sparse_row")
+    row_ok = row.is_valid().to_numpy(zero_copy_only=False)
+    rows = row.fill_null(0).to_numpy().astype(np.int64)
+    if (part & (~row_ok | (rows < 0))).any():
+        raise FormatError(f"{path}: a sample refers to a sparse part without a valid sparse_row")
+    if (table.column("n_sparse").to_numpy() < 0).any():
+        raise FormatError(f"{path}: a sample has a negative n_sparse")
 
 
 def write_sparse_part(
@@ -418,14 +457,18 @@ def read_sparse_part(path: str | os.PathLike) -> pa.Table:
     try:
         table = pq.read_table(path)
     except (pa.ArrowException, OSError) as exc:
-        raise FormatError(f"{path}: cannot read the sparse part ({exc})") from exc
+        raise FormatError(f"{path}: cannot read the sparse part ({_brief(exc)})") from exc
     missing = [n for n in PART_SCHEMA.names if n not in table.column_names]
     if missing:
         raise FormatError(f"{path}: sparse part lacks column(s) {', '.join(missing)}")
     try:
-        return table.select(PART_SCHEMA.names).cast(PART_SCHEMA)
+        table = table.select(PART_SCHEMA.names).cast(PART_SCHEMA)
+        table.validate(full=True)
+        return table
     except (pa.ArrowInvalid, pa.ArrowNotImplementedError) as exc:
-        raise FormatError(f"{path}: sparse part columns have unexpected types ({exc})") from exc
+        raise FormatError(
+            f"{path}: sparse part columns have unexpected types ({_brief(exc)})"
+        ) from exc
 
 
 def part_rows(
@@ -457,7 +500,7 @@ class _PartCache:
             try:
                 pf = pq.ParquetFile(path)
             except (pa.ArrowException, OSError) as exc:
-                raise FormatError(f"{path}: cannot read the sparse part ({exc})") from exc
+                raise FormatError(f"{path}: cannot read the sparse part ({_brief(exc)})") from exc
             starts = [0]
             for g in range(pf.num_row_groups):
                 starts.append(starts[-1] + pf.metadata.row_group(g).num_rows)
@@ -470,10 +513,11 @@ class _PartCache:
         rows = self.groups.get(key)
         if rows is None:
             try:
-                table = pf.read_row_group(g, columns=PART_SCHEMA.names)
+                table = pf.read_row_group(g, columns=PART_SCHEMA.names).cast(PART_SCHEMA)
+                table.validate(full=True)
             except (pa.ArrowException, OSError) as exc:
-                raise FormatError(f"{path}: cannot decode row group {g} ({exc})") from exc
-            rows = list(part_rows(table.cast(PART_SCHEMA)))
+                raise FormatError(f"{path}: cannot decode row group {g} ({_brief(exc)})") from exc
+            rows = list(part_rows(table))
             self.groups[key] = rows
             while len(self.groups) > self.max_groups:
                 self.groups.popitem(last=False)

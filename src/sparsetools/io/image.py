@@ -15,9 +15,12 @@ from .atomic import atomic_path
 __all__ = [
     "DEPTH_SCALE",
     "MAX_IMAGE_PIXELS",
+    "check_pixel_count",
     "decode_depth_png",
     "encode_depth_png",
     "image_header_size",
+    "imdecode_captured",
+    "import_cv2",
     "read_depth_png",
     "read_image",
     "write_depth_png",
@@ -30,6 +33,21 @@ log = logging.getLogger(__name__)
 DEPTH_SCALE = 256.0
 #: Refuse to decode images declaring more pixels than this (decompression bombs).
 MAX_IMAGE_PIXELS = int(os.environ.get("SPARSETOOLS_MAX_IMAGE_PIXELS", 16384 * 16384 // 2))
+
+
+def check_pixel_count(width: int, height: int, what: str) -> None:
+    """Refuse an image or map size above :data:`MAX_IMAGE_PIXELS` (before allocating it).
+
+    Raises
+    ------
+    FormatError
+        ``what`` ("depth map", "<file>: declared size") names the culprit in the message.
+    """
+    if int(width) * int(height) > MAX_IMAGE_PIXELS:
+        raise FormatError(
+            f"{what} is {width}x{height} pixels, above the limit of {MAX_IMAGE_PIXELS} "
+            "(set SPARSETOOLS_MAX_IMAGE_PIXELS to raise it)"
+        )
 
 
 def image_header_size(data: bytes) -> tuple[int, int] | None:
@@ -58,32 +76,73 @@ def image_header_size(data: bytes) -> tuple[int, int] | None:
 
 
 def _read_bytes(path: Path, what: str) -> bytes:
+    article = "an" if what[:1] in "aeiou" else "a"
     try:
         data = path.read_bytes()
     except FileNotFoundError as exc:
         raise FormatError(f"{path}: no such {what}") from exc
     except IsADirectoryError as exc:
-        raise FormatError(f"{path}: is a folder, expected a {what}") from exc
+        raise FormatError(f"{path}: is a folder, expected {article} {what}") from exc
     except OSError as exc:
         raise FormatError(f"{path}: cannot read ({exc.strerror or exc})") from exc
     if not data:
-        raise FormatError(f"{path}: empty file, expected a {what}")
+        raise FormatError(f"{path}: empty file, expected {article} {what}")
     return data
 
 
-def _decode(data: bytes, path: Path, what: str, flags: int) -> np.ndarray:
+_CV2_QUIET = False
+
+
+def import_cv2():
+    """Import OpenCV with its own log output limited to errors.
+
+    OpenCV's decoders print warnings ("PNG input buffer is incomplete") on stderr for every
+    corrupt file; the readers here raise :class:`FormatError` instead, and the command line
+    promises one error line.
+    """
+    global _CV2_QUIET
     import cv2
 
+    if not _CV2_QUIET:
+        try:
+            cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+        except AttributeError:  # pragma: no cover - builds without the logging module
+            pass
+        _CV2_QUIET = True
+    return cv2
+
+
+def _decode(data: bytes, path: Path, what: str, flags: int) -> np.ndarray:
+    if not data:
+        raise FormatError(f"{path}: empty data, expected a {what}")
     size = image_header_size(data)
-    if size is not None and size[0] * size[1] > MAX_IMAGE_PIXELS:
-        raise FormatError(
-            f"{path}: declares {size[0]}x{size[1]} pixels, above the limit of {MAX_IMAGE_PIXELS} "
-            "(set SPARSETOOLS_MAX_IMAGE_PIXELS to raise it)"
-        )
-    img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flags)
+    if size is not None:
+        check_pixel_count(*size, f"{path}: declared size")
+    img, detail = imdecode_captured(data, flags, source=str(path))
     if img is None:
-        raise FormatError(f"{path}: cannot decode {what} (corrupt or unsupported format)")
+        why = f": {detail}" if detail else ""
+        raise FormatError(f"{path}: cannot decode {what} (corrupt or unsupported format){why}")
     return img
+
+
+def imdecode_captured(data: bytes, flags: int, *, source: str) -> tuple[np.ndarray | None, str]:
+    """``cv2.imdecode`` with what libpng/libjpeg print on stderr captured.
+
+    Returns the image (None when it cannot be decoded) and the libraries' text; when the
+    image decoded after all, that text is logged as a warning naming ``source``.
+    """
+    from ._native import native_stderr_captured
+
+    cv2 = import_cv2()
+    with native_stderr_captured() as native:
+        try:
+            img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flags)
+        except cv2.error:  # OpenCV raises for some malformed headers instead of returning None
+            img = None
+    detail = native[0] if native else ""
+    if img is not None and detail:
+        log.warning("%s: %s", source, detail)
+    return img, detail
 
 
 def read_image(path: str | os.PathLike) -> np.ndarray:

@@ -209,10 +209,63 @@ def quaternion_to_matrix(q) -> np.ndarray:
 
 
 def _pose_matrix(record: dict) -> np.ndarray:
+    try:
+        q = np.asarray(record["rotation"], dtype=np.float64)
+        t = np.asarray(record["translation"], dtype=np.float64)
+    except (KeyError, TypeError, ValueError, OverflowError) as exc:
+        raise FormatError(f"nuScenes record {record.get('token')}: bad pose ({exc})") from exc
+    norm = float(np.linalg.norm(q)) if q.shape == (4,) else 0.0
+    if q.shape != (4,) or t.shape != (3,) or not (np.isfinite(norm) and norm > 0):
+        raise FormatError(
+            f"nuScenes record {record.get('token')}: rotation must be a non-zero quaternion "
+            "[w, x, y, z] and translation [x, y, z]"
+        )
+    if not np.isfinite(t).all():
+        raise FormatError(f"nuScenes record {record.get('token')}: non-finite translation")
     T = np.eye(4)
-    T[:3, :3] = quaternion_to_matrix(record["rotation"])
-    T[:3, 3] = record["translation"]
+    T[:3, :3] = quaternion_to_matrix(q)
+    T[:3, 3] = t
     return T
+
+
+#: Fields every record of a table must hold (with their JSON types), checked when loading.
+_REQUIRED_FIELDS = {
+    "sample": {"token": str, "timestamp": (int, float)},
+    "sample_data": {
+        "token": str,
+        "sample_token": str,
+        "calibrated_sensor_token": str,
+        "ego_pose_token": str,
+        "filename": str,
+    },
+    "calibrated_sensor": {"token": str, "sensor_token": str},
+    "ego_pose": {"token": str},
+    "sensor": {"token": str, "channel": str},
+}
+#: Optional fields, checked when present and not null.
+_OPTIONAL_FIELDS = {
+    "sample_data": {"prev": str, "is_key_frame": bool, "width": int, "height": int},
+}
+
+
+def _index_records(rows: list, name: str, path: Path) -> dict[str, dict]:
+    """token -> record, after checking every record holds its table's fields."""
+    required = _REQUIRED_FIELDS.get(name, {"token": str})
+    optional = _OPTIONAL_FIELDS.get(name, {})
+    out: dict[str, dict] = {}
+    for i, r in enumerate(rows):
+        if not isinstance(r, dict):
+            raise FormatError(f"{path}: record {i} is not a JSON object")
+        for key, typ in required.items():
+            value = r.get(key)
+            if not isinstance(value, typ) or isinstance(value, bool):
+                raise FormatError(f"{path}: record {i} lacks '{key}' or it has the wrong type")
+        for key, typ in optional.items():
+            value = r.get(key)
+            if value not in (None, "") and not isinstance(value, typ):
+                raise FormatError(f"{path}: record {i}: '{key}' has the wrong type")
+        out[r["token"]] = r
+    return out
 
 
 class NuScenesTables:
@@ -239,11 +292,17 @@ class NuScenesTables:
                 raise FormatError(f"{f}: not valid JSON ({exc})") from exc
             if not isinstance(rows, list):
                 raise FormatError(f"{f}: expected a JSON list of records")
-            self._tables[name] = {r["token"]: r for r in rows}
-        self._channel_of_cs = {
-            tok: self._tables["sensor"][cs["sensor_token"]]["channel"]
-            for tok, cs in self._tables["calibrated_sensor"].items()
-        }
+            self._tables[name] = _index_records(rows, name, f)
+        try:
+            self._channel_of_cs = {
+                tok: self._tables["sensor"][cs["sensor_token"]]["channel"]
+                for tok, cs in self._tables["calibrated_sensor"].items()
+            }
+        except (KeyError, TypeError) as exc:
+            raise FormatError(
+                f"{folder}: calibrated_sensor refers to a sensor token missing from sensor.json "
+                f"({exc})"
+            ) from exc
         self._keyframe: dict[tuple[str, str], dict] = {}
         for sd in self._tables["sample_data"].values():
             if sd.get("is_key_frame", True):
@@ -252,7 +311,7 @@ class NuScenesTables:
     def get(self, table: str, token: str) -> dict:
         try:
             return self._tables[table][token]
-        except KeyError as exc:
+        except (KeyError, TypeError) as exc:
             raise FormatError(f"nuScenes table '{table}' has no token {token}") from exc
 
     def samples(self) -> list[dict]:
@@ -260,7 +319,12 @@ class NuScenesTables:
         return sorted(self._tables["sample"].values(), key=lambda s: s["timestamp"])
 
     def channel(self, sample_data: dict) -> str:
-        return self._channel_of_cs[sample_data["calibrated_sensor_token"]]
+        try:
+            return self._channel_of_cs[sample_data["calibrated_sensor_token"]]
+        except (KeyError, TypeError) as exc:
+            raise FormatError(
+                f"sample_data {sample_data.get('token')}: unknown calibrated_sensor_token"
+            ) from exc
 
     def sample_data(self, sample_token: str, channel: str) -> dict:
         """The key-frame sample_data record of ``channel`` in a sample."""
@@ -286,7 +350,10 @@ class NuScenesTables:
 
     def intrinsics(self, sample_data: dict) -> np.ndarray:
         cs = self.get("calibrated_sensor", sample_data["calibrated_sensor_token"])
-        K = np.asarray(cs.get("camera_intrinsic") or [], dtype=np.float64)
+        try:
+            K = np.asarray(cs.get("camera_intrinsic") or [], dtype=np.float64)
+        except (TypeError, ValueError, OverflowError):
+            K = np.empty(0)
         if K.shape != (3, 3):
             raise FormatError(f"calibrated_sensor {cs['token']} has no 3x3 camera_intrinsic")
         return K

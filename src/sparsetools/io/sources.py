@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import FormatError, ParameterError
-from .image import image_header_size
+from .image import check_pixel_count, image_header_size
 
 __all__ = [
     "CALIB_SUFFIXES",
@@ -152,6 +152,7 @@ def image_size_of(path: str | os.PathLike) -> tuple[int, int]:
         raise FormatError(f"{path}: cannot read ({exc.strerror or exc})") from exc
     if size is None or size[0] <= 0 or size[1] <= 0:
         raise FormatError(f"{path}: not a PNG or JPEG image (cannot read its size)")
+    check_pixel_count(*size, f"{path}: declared size")
     return size
 
 

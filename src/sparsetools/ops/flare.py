@@ -246,13 +246,19 @@ def _load_bank(path: Path, seed: int, count: int, size: int) -> FlareBank | None
             ghost_arr = z["ghosts"]
             desc = tuple(str(s) for s in z["descriptions"])
             meta = z["meta"]
-    except (OSError, KeyError, ValueError) as exc:
+    except Exception as exc:  # a corrupt zip/npy raises many types; a cache is just rebuilt
         log.warning("ignoring unreadable flare bank cache %s (%s); rebuilding it", path, exc)
         return None
     if (
-        tuple(int(v) for v in meta) != (BANK_VERSION, seed, count, size)
+        meta.shape != (4,)
+        or meta.dtype.kind not in "iu"
+        or tuple(int(v) for v in meta) != (BANK_VERSION, seed, count, size)
         or patterns.shape != (count, size, size, 3)
         or patterns.dtype != np.float32
+        or ghost_arr.ndim != 3
+        or ghost_arr.dtype.kind != "f"
+        or ghost_arr.shape[0] < 1
+        or len(desc) != count
     ):
         log.warning("flare bank cache %s does not match its name; rebuilding it", path)
         return None

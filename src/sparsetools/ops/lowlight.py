@@ -178,6 +178,8 @@ class LowLightRecord:
 
     @classmethod
     def from_dict(cls, d: dict) -> LowLightRecord:
+        if not isinstance(d, dict):
+            raise ParameterError(f"not a valid low-light record (a {type(d).__name__})")
         try:
             version = int(d.get("version", RECORD_VERSION))
             if version != RECORD_VERSION:
@@ -195,7 +197,7 @@ class LowLightRecord:
                 noise=NoiseParams.from_dict(d["noise"]), version=version,
                 extra=dict(d.get("extra", {})),
             )  # fmt: skip
-        except (KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:
             if isinstance(exc, ParameterError):
                 raise
             raise ParameterError(

@@ -192,17 +192,21 @@ def read_cloud_strict(path: str | os.PathLike) -> np.ndarray:
         raw = np.frombuffer(data, dtype="<f4")
         points = raw.reshape(-1, columns).astype(np.float32)
     elif kind == "npy":
+        from ..io.npy import load_npy
+
         try:
-            points = np.load(p, allow_pickle=False)
+            data = p.read_bytes()
         except FileNotFoundError as exc:
             raise FormatError(f"{p}: no such file") from exc
-        except (ValueError, OSError, EOFError) as exc:
-            raise FormatError(f"{p}: not a valid .npy array ({exc})") from exc
+        except OSError as exc:
+            raise FormatError(f"{p}: cannot read ({exc.strerror or exc})") from exc
+        points = load_npy(data, source=str(p))
         if points.ndim != 2 or points.shape[1] < 3 or points.dtype.kind not in "fiu":
             raise FormatError(
                 f"{p}: expected a numeric (N, C>=3) array, got {points.dtype} {points.shape}"
             )
-        points = points.astype(np.float32)
+        with np.errstate(over="ignore", invalid="ignore"):  # beyond float32: Inf, refused below
+            points = points.astype(np.float32)
     else:  # PCD / PLY through Open3D
         points = read_points(p)
     if points.shape[0] == 0:
@@ -375,18 +379,20 @@ def _output_suffix(settings: BeamsSettings, cloud: Path) -> str:
 
 def _frame_calibration(calib_path, image, image_size, camera=2):
     from ..io.calib import load_calibration
+    from ..io.image import check_pixel_count
     from ..io.sources import image_size_of
 
     calib = load_calibration(calib_path, camera=camera)
     if image_size is not None:
-        return calib.with_size(*image_size)
-    if image is not None:
-        return calib.with_size(*image_size_of(image))
-    if calib.width is None or calib.height is None:
+        calib = calib.with_size(*image_size)
+    elif image is not None:
+        calib = calib.with_size(*image_size_of(image))
+    elif calib.width is None or calib.height is None:
         raise ParameterError(
             f"image size missing: give --image-size WxH or --image IMG "
             f"(calibration {calib.source or calib_path} holds none)"
         )
+    check_pixel_count(calib.width, calib.height, "depth map")
     return calib
 
 

@@ -46,6 +46,7 @@ from ..io.dataset import (
     MAX_SIDE,
     PART_SCHEMA,
     SPARSE_DIR,
+    _brief,
     bytes_sha256,
     check_relative_path,
     decode_confidence_bytes,
@@ -424,7 +425,7 @@ def _read_points_table(path: Path) -> dict[str, tuple]:
     try:
         table = pq.read_table(path)
     except Exception as exc:
-        raise FormatError(f"{path}: cannot read the sparse-points table ({exc})") from exc
+        raise FormatError(f"{path}: cannot read the sparse-points table ({_brief(exc)})") from exc
     id_col = next(
         (c for c in ("id", "frame_id", "stem", "frame", "name") if c in table.column_names), None
     )
@@ -466,16 +467,16 @@ def _read_bytes(path: str, what: str) -> bytes:
 
 def _decode_rgb_size(data: bytes, source: str) -> tuple[int, int]:
     """Decode an 8-bit colour image (to prove it is readable); return (width, height)."""
-    import cv2
+    from ..io.image import check_pixel_count, image_header_size, imdecode_captured, import_cv2
 
-    from ..io.image import MAX_IMAGE_PIXELS, image_header_size
-
+    cv2 = import_cv2()
     size = image_header_size(data)
-    if size is not None and size[0] * size[1] > MAX_IMAGE_PIXELS:
-        raise FormatError(f"{source}: declares {size[0]}x{size[1]} pixels, above the limit")
-    img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    if size is not None:
+        check_pixel_count(*size, f"{source}: declared size")
+    img, detail = imdecode_captured(data, cv2.IMREAD_UNCHANGED, source=source)
     if img is None:
-        raise FormatError(f"{source}: cannot decode image (corrupt or unsupported format)")
+        why = f": {detail}" if detail else ""
+        raise FormatError(f"{source}: cannot decode image (corrupt or unsupported format){why}")
     if img.dtype != np.uint8:
         raise FormatError(f"{source}: {img.dtype} image, expected 8-bit RGB (is this a depth map?)")
     if img.ndim == 3 and img.shape[2] not in (3, 4):
@@ -489,7 +490,9 @@ def _store(data: bytes, src: str | None, dst: Path, link: bool) -> bool:
         if link and src is not None:
             try:
                 tmp.unlink()
-                os.link(src, tmp)
+                # link() does not follow a symbolic link: resolve it, or the dataset would hold
+                # a link pointing outside it instead of the file.
+                os.link(os.path.realpath(src), tmp)
                 return True
             except OSError:  # other file system, or links not permitted: copy instead
                 pass
@@ -560,8 +563,12 @@ def _read_record(path: Path) -> tuple[dict, tuple | None]:
                 np.frombuffer(body[4 * n :], "<f4").astype(np.float32),
             )
         row = header["row"]
-    except (OSError, ValueError, KeyError, UnicodeDecodeError) as exc:
-        raise FormatError(f"{path}: corrupt staging record ({exc}); delete it and rerun") from exc
+        if not isinstance(row, dict):
+            raise ValueError("the record's row is not an object")
+    except (OSError, ValueError, KeyError, TypeError, IndexError, OverflowError) as exc:
+        raise FormatError(
+            f"{path}: corrupt staging record ({_brief(exc)}); delete it and rerun"
+        ) from exc
     return row, points
 
 
@@ -598,7 +605,9 @@ def build_frame(task: FrameTask) -> dict:
     row.update(width=w, height=h)
     row["rgb_sha256"] = timed("t_hash", bytes_sha256, data)
     row["rgb_path"] = f"rgb/{fid}{Path(rgb_src).suffix.lower()}"
-    linked += timed("t_write", _store, data, rgb_src, root / row["rgb_path"], x["link"])
+    # Files are written only once every input of the frame has been decoded and checked, so
+    # a bad frame leaves nothing behind in the dataset.
+    writes = [(data, rgb_src, root / row["rgb_path"])]
 
     # Sparse depth: the float32 map as decoded, then PNG and/or points.
     fmt = x["sparse_format"]
@@ -633,9 +642,7 @@ def build_frame(task: FrameTask) -> dict:
             png_src = src
         row["sparse_path"] = f"{SPARSE_DIR}/{fid}.png"
         row["sparse_sha256"] = timed("t_hash", bytes_sha256, sparse_png)
-        linked += timed(
-            "t_write", _store, sparse_png, png_src, root / row["sparse_path"], x["link"]
-        )
+        writes.append((sparse_png, png_src, root / row["sparse_path"]))
     points = None
     if fmt in ("parquet", "both"):
         if max(w, h) > MAX_SIDE:
@@ -659,7 +666,7 @@ def build_frame(task: FrameTask) -> dict:
         rel = f"{kind}/{fid}{Path(src_k).suffix.lower()}"
         row[f"{kind}_path"] = rel
         row[f"{kind}_sha256"] = timed("t_hash", bytes_sha256, kdata)
-        linked += timed("t_write", _store, kdata, src_k, root / rel, x["link"])
+        writes.append((kdata, src_k, root / rel))
 
     if x.get("calib") is not None:
         from ..errors import CalibrationError
@@ -677,6 +684,8 @@ def build_frame(task: FrameTask) -> dict:
         params["params"] = x["params"]
     row["generation_params"] = json.dumps(params, sort_keys=True)
 
+    for wdata, wsrc, wdst in writes:
+        linked += timed("t_write", _store, wdata, wsrc, wdst, x["link"])
     t0 = clock()
     _write_record(root / STAGING / f"{fid}.rec", row, points)
     t["t_stage"] += clock() - t0
@@ -1009,6 +1018,13 @@ def _finalize(out: Path, *, fractions, seed, assignment, info, frames_per_part) 
 
     sparse_dir = out / SPARSE_DIR
     on_disk = sorted(sparse_dir.glob("part-*.parquet")) if sparse_dir.is_dir() else []
+    # Parts no manifest row refers to were written by a finalize that was interrupted before
+    # its manifest: drop them, so the resumed build numbers its parts as an uninterrupted one.
+    referenced_old = {r["sparse_parquet"] for r in old_rows if r["sparse_parquet"] is not None}
+    for p in on_disk:
+        if f"{SPARSE_DIR}/{p.name}" not in referenced_old:
+            p.unlink()
+    on_disk = [p for p in on_disk if p.exists()]
     next_part = 1 + max((i for p in on_disk if (i := _part_index(p.name)) is not None), default=-1)
     written = []
 
@@ -1212,7 +1228,7 @@ def _verify_row(root: Path, r: dict, check_hashes: bool) -> tuple[list[str], np.
         try:
             arr = decode(data, r[col])
         except FormatError as exc:
-            problems.append(f"{fid}: {r[col]} cannot be decoded ({exc})")
+            problems.append(f"{fid}: {r[col]} cannot be decoded ({_brief(exc)})")
             return None
         if arr.shape[:2] != shape:
             problems.append(
@@ -1223,9 +1239,13 @@ def _verify_row(root: Path, r: dict, check_hashes: bool) -> tuple[list[str], np.
         return arr
 
     def rgb_decode(data, rel):
-        import cv2
+        from ..io.image import check_pixel_count, image_header_size, imdecode_captured, import_cv2
 
-        img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+        cv2 = import_cv2()
+        size = image_header_size(data)
+        if size is not None:
+            check_pixel_count(*size, "declared size")
+        img, _ = imdecode_captured(data, cv2.IMREAD_UNCHANGED, source=rel)
         if img is None or img.dtype != np.uint8:
             raise FormatError("not an 8-bit image")
         return img

@@ -209,11 +209,14 @@ def _manifest_schema():
 
 def _read_sidecar(path: Path) -> dict:
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, json.JSONDecodeError) as exc:
+        side = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise FormatError(
             f"{path}: unreadable record sidecar ({exc}); rerun with --overwrite"
         ) from exc
+    if not isinstance(side, dict):
+        raise FormatError(f"{path}: not a record sidecar (a JSON object); rerun with --overwrite")
+    return side
 
 
 def write_manifest(out_dir: str | os.PathLike, tasks: list[FrameTask]) -> tuple[Path, int]:
@@ -257,6 +260,8 @@ def _check_existing(out_dir: str | os.PathLike, job_config: dict, overwrite: boo
         return
     # Every run writes one configuration, so one sidecar tells which one the folder holds.
     for p in sorted(records.glob("*.json")):
+        if p.name.startswith("."):  # a temporary file left by a killed run (removed later)
+            continue
         if _read_sidecar(p).get("config") != job_config:
             raise OutputError(
                 f"{out_dir} holds night images made with other settings (seed, variants or "

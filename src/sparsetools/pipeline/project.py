@@ -31,6 +31,7 @@ import numpy as np
 from ..calibration import Calibration
 from ..errors import FormatError, OutputError, ParameterError
 from ..io.atomic import atomic_path
+from ..io.image import check_pixel_count
 from ..io.sources import SourceFrame, image_size_of
 from .core import FrameResult, FrameTask, RunSummary, check_output_dir, run_frames
 
@@ -137,6 +138,8 @@ def resolve_calibration(inputs: dict) -> Calibration:
     if settings.crop is not None:
         top, left, h, w = settings.crop
         calib = calib.cropped(top, left, h, w)
+    # A size from an option or a calibration file is not bounded by anything else.
+    check_pixel_count(calib.width, calib.height, "depth map")
     return calib
 
 

@@ -1,0 +1,347 @@
+"""Fault injection: interrupted batch runs resume to the same bytes; bad frames are skipped.
+
+Three kinds of fault:
+
+- ``SIGKILL`` of a real ``sparsetools`` process in the middle of a batch (twice per run, at
+  arbitrary moments, so temporary files may be left half-written), then a rerun;
+- an interrupt (``KeyboardInterrupt``, what Ctrl-C raises) at *every* atomic rename of a
+  small run, one run per rename, then a rerun — this reaches the merge steps at the end of a
+  batch (Parquet tables, manifests) that a kill rarely hits;
+- one bad frame among good ones with ``--on-error skip``.
+
+After every rerun the output folder must be byte-identical to an uninterrupted run in
+another folder and hold no temporary file.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from cli_helpers import assert_no_traceback, error_lines, invoke
+from corpus_builder import (
+    H,
+    W,
+    corrupt_png,
+    good_frame,
+    png_bytes,
+    temp_files,
+    tree_digest,
+    underwater_tree,
+    write,
+)
+
+#: Counted into docs/reliability.md by hand: keep the two in step.
+KILLS_PER_RUN = 2
+
+
+def replicate(root: Path, n: int) -> dict[str, Path]:
+    """``n`` frames: copies of one valid frame under new stems (distinct per-frame seeds)."""
+    f = good_frame(root)
+    for i in range(1, n):
+        stem = f"{i:06d}"
+        for key in ("cloud", "image", "depth"):
+            src = f[key]
+            shutil.copyfile(src, src.with_name(stem + src.suffix))
+    return f
+
+
+def cli_command() -> list[str]:
+    return [sys.executable, "-m", "sparsetools.cli.main"]
+
+
+def kill_when(args: list, out: Path, pattern: str, at: int, timeout: float = 120.0) -> int:
+    """Start ``sparsetools ARGS``; SIGKILL it once ``at`` files match ``out/pattern``.
+
+    Returns how many matched when it was killed; fails if the run ended by itself first.
+    """
+    proc = subprocess.Popen(
+        [*cli_command(), "-q", *map(str, args)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
+    t_end = time.monotonic() + timeout
+    seen = 0
+    try:
+        while proc.poll() is None and time.monotonic() < t_end:
+            seen = len(list(out.glob(pattern))) if out.is_dir() else 0
+            if seen >= at:
+                proc.send_signal(signal.SIGKILL)
+                break
+            time.sleep(0.002)
+    finally:
+        if proc.poll() is None and time.monotonic() >= t_end:
+            proc.kill()
+        _, err = proc.communicate(timeout=60)
+    assert proc.returncode == -signal.SIGKILL, (
+        f"the run ended (exit {proc.returncode}) before {at} outputs appeared: "
+        f"make the batch longer; stderr: {err.decode(errors='replace')[-2000:]}"
+    )
+    return seen
+
+
+def kill_resume_compare(tmp_path: Path, args_for, pattern: str, total: int, kill_at) -> dict:
+    """Reference run in ``ref``; killed runs then a final run in ``out``; compare."""
+    ref, out = tmp_path / "ref", tmp_path / "out"
+    r = invoke(args_for(ref))
+    assert r.exit_code == 0, r.stderr
+    reference = tree_digest(ref)
+    assert len([k for k in reference if Path(k).match(pattern)]) == total
+
+    seen = [kill_when(args_for(out), out, pattern, at) for at in kill_at]
+    assert seen == sorted(seen) and seen[-1] < total
+
+    final = invoke([*args_for(out), "--json"])
+    assert_no_traceback(final)
+    assert final.exit_code == 0, final.stderr
+    summary = json.loads(final.stdout)
+    assert tree_digest(out) == reference, "resumed output differs from an uninterrupted run"
+    assert not temp_files(out)
+    return summary
+
+
+@pytest.mark.slow
+def test_project_killed_twice_resumes_identically(tmp_path):
+    n = 150
+    f = replicate(tmp_path / "in", n)
+
+    def args(out):
+        return ["project", f["cloud"].parent, "--calib", f["calib"], "--image-size", f"{W}x{H}",
+                "-o", out]  # fmt: skip
+
+    summary = kill_resume_compare(tmp_path, args, "*.png", n, kill_at=(20, 70))
+    # A frame is complete with both files: the last one seen may lack its calib JSON.
+    assert summary["frames"] == n and summary["skipped_existing"] >= 69
+    assert summary["processed"] == n - summary["skipped_existing"]
+
+
+@pytest.mark.slow
+def test_lowlight_killed_twice_resumes_identically(tmp_path):
+    n = 40
+    f = replicate(tmp_path / "in", n)
+
+    def args(out):
+        return ["lowlight-synth", f["image"].parent, "--seed", "3", "-o", out]
+
+    summary = kill_resume_compare(tmp_path, args, "*.png", n, kill_at=(6, 20))
+    assert summary["manifest_rows"] == n and summary["skipped_existing"] >= 19
+
+
+@pytest.mark.slow
+def test_dataset_build_killed_twice_resumes_identically(tmp_path):
+    n = 150
+    f = replicate(tmp_path / "in", n)
+
+    def args(out):
+        return ["dataset", "build", "--rgb", f["image"].parent, "--sparse", f["depth"].parent,
+                "-o", out]  # fmt: skip
+
+    summary = kill_resume_compare(tmp_path, args, "rgb/*.png", n, kill_at=(20, 70))
+    assert summary["frames"] == n and summary["skipped_existing"] >= 69
+    verify = invoke(["dataset", "verify", tmp_path / "out"])
+    assert verify.exit_code == 0, verify.stdout
+
+
+# -- an interrupt at every atomic rename --------------------------------------------------------
+
+
+def _inputs_project(root: Path):
+    f = replicate(root, 3)
+    return lambda out: ["project", f["cloud"].parent, "--calib", f["calib"],
+                        "--image-size", f"{W}x{H}", "--format", "parquet", "-o", out]  # fmt: skip
+
+
+def _inputs_lowlight(root: Path):
+    f = replicate(root, 3)
+    return lambda out: ["lowlight-synth", f["image"].parent, "--variants", "2", "-o", out]
+
+
+def _inputs_dataset(root: Path):
+    f = replicate(root, 4)
+    for stem in ("000000", "000001", "000002", "000003"):
+        write(root / "gt" / f"{stem}.png", f["gt"].read_bytes())
+    return lambda out: ["dataset", "build", "--rgb", f["image"].parent, "--sparse",
+                        f["depth"].parent, "--gt", root / "gt", "-o", out]  # fmt: skip
+
+
+def _inputs_equalize(root: Path):
+    f = replicate(root, 3)
+    return lambda out: ["equalize", f["image"].parent, "-o", out]
+
+
+def _inputs_underwater(root: Path):
+    sea, water = underwater_tree(root, n_seafloor=4)
+    return lambda out: ["underwater", sea, "--water", water, "--window", "3", "-o", out]
+
+
+def _inputs_beams(root: Path):
+    f = replicate(root, 3)
+    return lambda out: ["beams", f["cloud"].parent, "--n", "1,4", "-o", out]
+
+
+INTERRUPTED = {
+    "project-parquet": _inputs_project,
+    "lowlight-synth": _inputs_lowlight,
+    "dataset-build": _inputs_dataset,
+    "equalize": _inputs_equalize,
+    "underwater": _inputs_underwater,
+    "beams": _inputs_beams,
+}
+
+
+class _InterruptAt:
+    """``os.replace`` that raises KeyboardInterrupt at its ``n``-th call (1-based)."""
+
+    def __init__(self, n: int):
+        self.n = n
+        self.calls = 0
+        self.real = os.replace
+
+    def __call__(self, *a, **kw):
+        self.calls += 1
+        if self.calls == self.n:
+            raise KeyboardInterrupt
+        return self.real(*a, **kw)
+
+
+@pytest.mark.parametrize("command", sorted(INTERRUPTED))
+def test_interrupt_at_every_rename_resumes_identically(command, tmp_path, monkeypatch):
+    args_for = INTERRUPTED[command](tmp_path / "in")
+    counter = _InterruptAt(0)
+    monkeypatch.setattr(os, "replace", counter)
+    r = invoke(args_for(tmp_path / "ref"))
+    assert r.exit_code == 0, r.stderr
+    renames = counter.calls
+    assert renames >= 3
+    reference = tree_digest(tmp_path / "ref")
+    inputs = tree_digest(tmp_path / "in")
+
+    for n in range(1, renames + 1):
+        out = tmp_path / f"out{n}"
+        monkeypatch.setattr(os, "replace", _InterruptAt(n))
+        r = invoke(args_for(out))
+        assert r.exit_code == 130, (n, r.exit_code, r.stderr)
+        assert "Interrupted" in r.stderr
+        monkeypatch.setattr(os, "replace", counter.real)
+        r = invoke(args_for(out))
+        assert r.exit_code == 0, (n, r.stderr)
+        assert tree_digest(out) == reference, f"interrupt at rename {n} of {renames}"
+        assert not temp_files(out)
+        shutil.rmtree(out)
+    assert tree_digest(tmp_path / "in") == inputs
+    print(f"{command}: {renames} interrupts injected")
+
+
+# -- --on-error skip ------------------------------------------------------------------------------
+
+
+def _skip_project(root: Path):
+    f = replicate(root, 5)
+    write(f["cloud"].with_name("000002.bin"), f["cloud"].read_bytes()[:100])
+    args = ["project", f["cloud"].parent, "--calib", f["calib"], "--image-size", f"{W}x{H}"]
+    return args, "000002", lambda out: sorted(p.name for p in out.glob("*.png"))
+
+
+def _skip_beams(root: Path):
+    f = replicate(root, 5)
+    write(f["cloud"].with_name("000002.bin"), f["cloud"].read_bytes()[:100])
+    return (["beams", f["cloud"].parent, "--n", "4"], "000002",
+            lambda out: sorted(p.name for p in out.glob("*.bin")))  # fmt: skip
+
+
+def _skip_lowlight(root: Path):
+    f = replicate(root, 5)
+    write(f["image"].with_name("000002.png"), corrupt_png())
+    return (["lowlight-synth", f["image"].parent], "000002",
+            lambda out: sorted(p.name for p in out.glob("*.png")))  # fmt: skip
+
+
+def _skip_equalize(root: Path):
+    f = replicate(root, 5)
+    write(f["image"].with_name("000002.png"), b"")
+    return (["equalize", f["image"].parent], "000002",
+            lambda out: sorted(p.name for p in out.glob("*.png")))  # fmt: skip
+
+
+def _skip_dataset(root: Path):
+    f = replicate(root, 5)
+    write(f["depth"].with_name("000002.png"), png_bytes(np.full((H, W), 7, np.uint8)))
+
+    def done(out):
+        from sparsetools.io.dataset import read_manifest
+
+        ids = read_manifest(out / "manifest.parquet")[0].column("id").to_pylist()
+        files = {p.stem for p in out.rglob("*.png")}
+        assert "000002" not in files, "the failed frame left files in the dataset"
+        return [f"{i}.png" for i in ids]
+
+    return ["dataset", "build", "--rgb", f["image"].parent, "--sparse", f["depth"].parent], \
+        "000002", done  # fmt: skip
+
+
+def _skip_jbf(root: Path):
+    from corpus_builder import depth_map, depth_png_bytes
+
+    f = replicate(root, 5)
+    for i in range(5):
+        write(root / "radar" / f"{i:06d}.png", depth_png_bytes(depth_map(i, density=0.02)))
+    write(root / "radar" / "000002.png", corrupt_png())
+    args = ["jbf-expand", root / "radar", "--image", f["image"].parent, "--fx", "40", "--fy", "40"]
+    return args, "000002", lambda out: sorted(p.name for p in out.glob("0*[0-9].png"))
+
+
+SKIPPED = {
+    "project": _skip_project,
+    "beams": _skip_beams,
+    "lowlight-synth": _skip_lowlight,
+    "equalize": _skip_equalize,
+    "dataset-build": _skip_dataset,
+    "jbf-expand": _skip_jbf,
+}
+
+
+@pytest.mark.parametrize("command", sorted(SKIPPED))
+def test_on_error_skip_reports_the_bad_frame_and_does_the_rest(command, tmp_path):
+    args, bad, outputs = SKIPPED[command](tmp_path / "in")
+    out = tmp_path / "out"
+    inputs = tree_digest(tmp_path / "in")
+    r = invoke([*args, "--on-error", "skip", "-o", out])
+    assert_no_traceback(r)
+    assert r.exit_code == 1, (r.stdout, r.stderr)
+    assert f"failed {bad}" in r.stdout, r.stdout
+    lines = error_lines(r.stderr)
+    assert lines == ["Error: 1 frame(s) failed (listed above)"], r.stderr
+    good = [f"{i:06d}.png" for i in range(5) if f"{i:06d}" != bad]
+    got = outputs(out)
+    assert [Path(g).stem for g in got] == [Path(g).stem for g in good]
+    assert not temp_files(out)
+    assert tree_digest(tmp_path / "in") == inputs
+
+
+def test_skip_then_fix_then_rerun_does_only_the_fixed_frame(tmp_path):
+    f = replicate(tmp_path / "in", 5)
+    good_bytes = f["cloud"].read_bytes()
+    bad = f["cloud"].with_name("000002.bin")
+    write(bad, good_bytes[:100])
+
+    def args(out):
+        return ["project", f["cloud"].parent, "--calib", f["calib"], "--image-size", f"{W}x{H}",
+                "-o", out, "--json"]  # fmt: skip
+
+    r = invoke([*args(tmp_path / "out"), "--on-error", "skip"])
+    assert r.exit_code == 1
+    write(bad, good_bytes)
+    r = invoke(args(tmp_path / "out"))
+    assert r.exit_code == 0, r.stderr
+    summary = json.loads(r.stdout)
+    assert (summary["processed"], summary["skipped_existing"], summary["failed"]) == (1, 4, 0)
+    assert invoke(args(tmp_path / "ref")).exit_code == 0
+    assert tree_digest(tmp_path / "out") == tree_digest(tmp_path / "ref")
