@@ -1,0 +1,275 @@
+"""The torch Dataset over a sparsetools dataset (Parquet manifest + PNG files).
+
+Samples come from :class:`sparsetools.io.dataset.DatasetReader`. Training samples get a joint
+geometric augmentation of rgb, sparse depth and ground truth (random scale with depth divided
+by the scale as Ma & Karaman do, bottom-centre crop, horizontal flip; nearest-neighbour
+resampling for both depth maps, so no depth value is invented) and a colour jitter of rgb only.
+
+Randomness: each sample's augmentation draws from a generator seeded with
+``(seed, epoch, sample index)``, so a run is reproducible whatever the number of DataLoader
+workers and an interrupted run resumes with the very same augmentations.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from ..errors import FormatError, ParameterError
+
+__all__ = [
+    "DepthDataset",
+    "augment_sample",
+    "bottom_centre_crop",
+    "collate_samples",
+    "open_split",
+]
+
+
+def open_split(path, split: str, *, need_gt: bool = True):
+    """A :class:`~sparsetools.io.dataset.DatasetReader` over ``split``, checked for training.
+
+    Raises
+    ------
+    ParameterError
+        The split is missing or empty.
+    FormatError
+        ``need_gt`` and some samples of the split have no ground truth.
+    """
+    from ..io.dataset import DatasetReader
+
+    reader = DatasetReader(path)
+    if split not in reader.splits:
+        raise ParameterError(
+            f"dataset {path} has no samples in split '{split}' "
+            f"(splits: {', '.join(reader.splits) or 'none'})"
+        )
+    reader = reader.split(split)
+    if len(reader) == 0:
+        raise ParameterError(f"split '{split}' of {path} is empty")
+    if need_gt:
+        missing = [
+            r["id"]
+            for r in reader.manifest.select(["id", "gt_path"]).to_pylist()
+            if r["gt_path"] is None
+        ]
+        if missing:
+            raise FormatError(
+                f"split '{split}' of {path}: {len(missing)} of {len(reader)} sample(s) have no "
+                f"ground truth (e.g. '{missing[0]}'); build the dataset with --gt"
+            )
+    return reader
+
+
+def bottom_centre_crop(array: np.ndarray, height: int, width: int) -> np.ndarray:
+    """The bottom ``height`` rows and the central ``width`` columns of an (H, W, ...) array.
+
+    The bottom is kept because that is where LiDAR and ground truth have data (KITTI's sky
+    rows have none); an odd margin puts the extra column on the right.
+    """
+    h, w = array.shape[:2]
+    if height > h or width > w:
+        raise ParameterError(f"crop {height}x{width} (HxW) is larger than the {h}x{w} image")
+    left = (w - width) // 2
+    return array[h - height :, left : left + width]
+
+
+def _resize_nearest(depth: np.ndarray, height: int, width: int) -> np.ndarray:
+    import cv2
+
+    return cv2.resize(depth, (width, height), interpolation=cv2.INTER_NEAREST)
+
+
+def augment_sample(
+    rgb: np.ndarray,
+    sparse: np.ndarray,
+    gt: np.ndarray,
+    rng: np.random.Generator,
+    *,
+    crop: tuple[int, int] | None = None,
+    scale_range: tuple[float, float] = (1.0, 1.0),
+    flip: bool = True,
+    jitter: float = 0.2,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Joint augmentation of one sample.
+
+    Parameters
+    ----------
+    rgb : (H, W, 3) uint8
+    sparse, gt : (H, W) float32, metres, 0 = empty
+    rng : numpy.random.Generator
+    crop : (height, width) or None
+        Bottom-centre crop after scaling.
+    scale_range : (low, high)
+        Uniform scale factor s: images are resized by s (rgb bilinear, depth nearest) and
+        depths divided by s (the scene seen s times closer). (1, 1) disables it.
+    flip : bool
+        Horizontal flip with probability 1/2.
+    jitter : float
+        Brightness, contrast and saturation factors uniform in [1 - jitter, 1 + jitter] (rgb
+        only). 0 disables it.
+
+    Returns
+    -------
+    rgb : (h, w, 3) float32, 0..1
+    sparse, gt : (h, w) float32, metres
+    """
+    import cv2
+
+    # Fixed draw order: the same rng state gives the same augmentation whatever the options.
+    s = float(rng.uniform(*scale_range))
+    do_flip = bool(rng.random() < 0.5)
+    factors = rng.uniform(1.0 - jitter, 1.0 + jitter, size=3)
+
+    rgb = rgb.astype(np.float32) / 255.0
+    if s != 1.0:
+        h, w = gt.shape
+        nh, nw = round(h * s), round(w * s)
+        rgb = cv2.resize(rgb, (nw, nh), interpolation=cv2.INTER_LINEAR)
+        sparse = _resize_nearest(sparse, nh, nw) / np.float32(s)
+        gt = _resize_nearest(gt, nh, nw) / np.float32(s)
+    if crop is not None:
+        rgb = bottom_centre_crop(rgb, *crop)
+        sparse = bottom_centre_crop(sparse, *crop)
+        gt = bottom_centre_crop(gt, *crop)
+    if flip and do_flip:
+        rgb, sparse, gt = rgb[:, ::-1], sparse[:, ::-1], gt[:, ::-1]
+    if jitter > 0:
+        brightness, contrast, saturation = (np.float32(f) for f in factors)
+        rgb = rgb * brightness
+        grey = rgb @ np.array([0.299, 0.587, 0.114], dtype=np.float32)
+        rgb = (rgb - grey.mean()) * contrast + grey.mean()
+        grey = (rgb @ np.array([0.299, 0.587, 0.114], dtype=np.float32))[:, :, None]
+        rgb = np.clip((rgb - grey) * saturation + grey, 0.0, 1.0)
+    return (
+        np.ascontiguousarray(rgb, dtype=np.float32),
+        np.ascontiguousarray(sparse, dtype=np.float32),
+        np.ascontiguousarray(gt, dtype=np.float32),
+    )
+
+
+class DepthDataset(Dataset):
+    """Samples of one split as tensors for training or evaluation.
+
+    Parameters
+    ----------
+    path : path-like
+        Dataset folder (``manifest.parquet``).
+    split : str
+        ``'train'``, ``'val'``, ``'test'`` or any split of the manifest.
+    augment : bool
+        Random augmentation (training); otherwise only the optional crop.
+    crop : (height, width) or None
+        Bottom-centre crop (training and evaluation alike).
+    seed : int
+        Seed of the augmentation (with the epoch and the sample index).
+    need_gt : bool
+        Refuse a split without ground truth (:func:`open_split`).
+    scale_range, jitter : see :func:`augment_sample`.
+
+    Each item is a dict: ``rgb`` (3, h, w) float32 0..1, ``sparse`` and ``gt`` (1, h, w)
+    float32 metres (``gt`` zeros when the sample has none), ``index`` (int).
+    """
+
+    def __init__(
+        self,
+        path,
+        split: str,
+        *,
+        augment: bool = False,
+        crop: tuple[int, int] | None = None,
+        seed: int = 0,
+        need_gt: bool = True,
+        scale_range: tuple[float, float] = (1.0, 1.0),
+        jitter: float = 0.2,
+    ):
+        self.reader = open_split(path, split, need_gt=need_gt)
+        self.augment = bool(augment)
+        self.crop = None if crop is None else (int(crop[0]), int(crop[1]))
+        self.seed = int(seed)
+        self.epoch = 0
+        self.scale_range = (float(scale_range[0]), float(scale_range[1]))
+        self.jitter = float(jitter)
+        if not 0 < self.scale_range[0] <= self.scale_range[1]:
+            raise ParameterError(f"scale range must satisfy 0 < low <= high, got {scale_range}")
+        if self.scale_range != (1.0, 1.0) and (crop is None or self.scale_range[0] < 1.0):
+            raise ParameterError("scale augmentation needs a crop and scales >= 1")
+        sizes = self.sizes()
+        if self.crop is not None:
+            ch, cw = self.crop
+            if ch <= 0 or cw <= 0:
+                raise ParameterError(f"crop must be positive, got {ch}x{cw}")
+            small = [(h, w) for h, w in sizes if h < ch or w < cw]
+            if small:
+                h, w = small[0]
+                raise ParameterError(
+                    f"crop {ch}x{cw} (HxW) is larger than {len(small)} image(s) of split "
+                    f"'{split}' (e.g. {h}x{w})"
+                )
+
+    def __len__(self) -> int:
+        return len(self.reader)
+
+    def sizes(self) -> list[tuple[int, int]]:
+        """(height, width) of every sample, from the manifest."""
+        m = self.reader.manifest
+        return list(zip(m.column("height").to_pylist(), m.column("width").to_pylist(), strict=True))
+
+    def output_sizes(self) -> set[tuple[int, int]]:
+        """The distinct (height, width) of the tensors this dataset yields."""
+        if self.crop is not None:
+            return {self.crop}
+        return set(self.sizes())
+
+    def set_epoch(self, epoch: int) -> None:
+        """Select the augmentation stream of ``epoch`` (call before iterating each epoch)."""
+        self.epoch = int(epoch)
+
+    def sample_id(self, index: int) -> str:
+        return self.reader.row(index)["id"]
+
+    def __getitem__(self, index: int) -> dict:
+        s = self.reader.sample(int(index))
+        rgb, sparse = s["rgb"], s["sparse"]
+        gt = s["gt"] if s["gt"] is not None else np.zeros(sparse.shape, np.float32)
+        if self.augment:
+            rng = np.random.default_rng([self.seed, self.epoch, int(index)])
+            rgb, sparse, gt = augment_sample(
+                rgb,
+                sparse,
+                gt,
+                rng,
+                crop=self.crop,
+                scale_range=self.scale_range,
+                jitter=self.jitter,
+            )
+        else:
+            rgb = rgb.astype(np.float32) / 255.0
+            if self.crop is not None:
+                rgb = bottom_centre_crop(rgb, *self.crop)
+                sparse = bottom_centre_crop(sparse, *self.crop)
+                gt = bottom_centre_crop(gt, *self.crop)
+        return {
+            "rgb": torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1))),
+            "sparse": torch.from_numpy(np.ascontiguousarray(sparse)[None]),
+            "gt": torch.from_numpy(np.ascontiguousarray(gt)[None]),
+            "index": int(index),
+        }
+
+
+def collate_samples(items: list[dict]) -> dict:
+    """Stack samples into a batch; refuse samples of different sizes with a clear message."""
+    sizes = {tuple(it["rgb"].shape[-2:]) for it in items}
+    if len(sizes) > 1:
+        listed = ", ".join(f"{h}x{w}" for h, w in sorted(sizes))
+        raise ParameterError(
+            f"images of different sizes in one batch ({listed}, HxW): use --crop HxW "
+            "or a dataset with one image size"
+        )
+    return {
+        "rgb": torch.stack([it["rgb"] for it in items]),
+        "sparse": torch.stack([it["sparse"] for it in items]),
+        "gt": torch.stack([it["gt"] for it in items]),
+        "index": torch.tensor([it["index"] for it in items], dtype=torch.long),
+    }

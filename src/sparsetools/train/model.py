@@ -1,0 +1,239 @@
+"""Early-fusion U-Net for depth completion (Ma & Karaman 2018; UltraDepth).
+
+The camera image, the sparse depth and (optionally) its validity mask are concatenated at the
+input ("early fusion") and go through one encoder-decoder:
+
+- encoder: a 3x3 stem, then five levels of residual blocks (two 3x3 conv + BN + LeakyReLU,
+  1x1 projection shortcut when the width changes) with widths ``32-64-128-256-512`` scaled by
+  ``width / 32``; levels 2-5 start with a 2x2 max pooling (so the deepest level is at 1/16);
+- decoder: four residual up-projection blocks (Laina et al. 2016: x2 nearest upsampling, then
+  conv-BN-act-conv-BN plus a conv-BN shortcut, summed, act; 3x3 kernels instead of Laina's
+  5x5 to keep CPU training fast), each followed by concatenation of the encoder feature map of
+  the same resolution and a 3x3 conv-BN-act fusing them;
+- activations: LeakyReLU(0.1) everywhere (UltraDepth). With plain ReLU in the decoder a narrow
+  model (``width`` 4-8) can end up with every last-layer feature at 0 over a region (the near
+  road, say), where the prediction then sticks at the head's bias with no gradient to leave it;
+- head: a 1x1 convolution to one channel, a softplus times 20 m, so depth is positive (needed
+  by the SILog loss), nearly linear in the head's output above a few metres, and the head works
+  on O(1) numbers; its bias starts at 10 m;
+- optional final 3x3 adjustment layer (UltraDepth): a 3x3 convolution over the coarse depth
+  and the network input that adds a residual correction to the depth.
+
+Inputs of any size: the network pads to a multiple of 16 at the bottom and right, and crops
+the prediction back.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ..errors import ParameterError
+
+__all__ = ["INPUT_CHANNELS", "DepthCompletionUNet", "build_model", "model_inputs"]
+
+#: Number of input channels of each input mode.
+INPUT_CHANNELS = {"rgb": 3, "rgbd": 4, "rgbdm": 5}
+#: Encoder widths at ``width = 32``.
+BASE_WIDTHS = (32, 64, 128, 256, 512)
+#: Downsampling factor of the deepest level.
+STRIDE = 16
+
+_RGB_MEAN = 0.45
+_RGB_STD = 0.225
+#: Sparse depth is fed as depth / this (metres), so typical inputs are O(1).
+_DEPTH_SCALE = 20.0
+_INIT_DEPTH = 10.0
+_SLOPE = 0.1
+
+
+def model_inputs(rgb: torch.Tensor, sparse: torch.Tensor | None, mode: str) -> torch.Tensor:
+    """Stack the network input of ``mode``.
+
+    Parameters
+    ----------
+    rgb : (B, 3, H, W) float, 0..1
+    sparse : (B, 1, H, W) float, metres, 0 = no measurement; unused for ``mode='rgb'``
+    mode : {'rgb', 'rgbd', 'rgbdm'}
+
+    Returns
+    -------
+    (B, C, H, W) float with C = ``INPUT_CHANNELS[mode]``: normalised rgb, depth / 20 m,
+    validity mask (0/1).
+    """
+    if mode not in INPUT_CHANNELS:
+        raise ParameterError(f"unknown input mode {mode!r}; choose one of {sorted(INPUT_CHANNELS)}")
+    x = (rgb - _RGB_MEAN) / _RGB_STD
+    if mode == "rgb":
+        return x
+    if sparse is None:
+        raise ParameterError(f"input mode {mode!r} needs sparse depth")
+    parts = [x, sparse / _DEPTH_SCALE]
+    if mode == "rgbdm":
+        parts.append((sparse > 0).to(rgb.dtype))
+    return torch.cat(parts, dim=1)
+
+
+class ResidualBlock(nn.Module):
+    """Two 3x3 conv-BN with LeakyReLU and an identity (or 1x1 conv-BN) shortcut."""
+
+    def __init__(self, c_in: int, c_out: int):
+        super().__init__()
+        self.conv1 = nn.Conv2d(c_in, c_out, 3, padding=1, bias=False)
+        self.bn1 = nn.BatchNorm2d(c_out)
+        self.conv2 = nn.Conv2d(c_out, c_out, 3, padding=1, bias=False)
+        self.bn2 = nn.BatchNorm2d(c_out)
+        self.shortcut = (
+            nn.Identity()
+            if c_in == c_out
+            else nn.Sequential(nn.Conv2d(c_in, c_out, 1, bias=False), nn.BatchNorm2d(c_out))
+        )
+        self.act = nn.LeakyReLU(_SLOPE)
+
+    def forward(self, x):
+        y = self.act(self.bn1(self.conv1(x)))
+        y = self.bn2(self.conv2(y))
+        return self.act(y + self.shortcut(x))
+
+
+class UpProjection(nn.Module):
+    """Residual up-projection block (Laina et al.): x2 upsampling, two branches summed."""
+
+    def __init__(self, c_in: int, c_out: int, kernel: int = 3):
+        super().__init__()
+        pad = kernel // 2
+        self.conv1 = nn.Conv2d(c_in, c_out, kernel, padding=pad, bias=False)
+        self.bn1 = nn.BatchNorm2d(c_out)
+        self.conv2 = nn.Conv2d(c_out, c_out, 3, padding=1, bias=False)
+        self.bn2 = nn.BatchNorm2d(c_out)
+        self.conv_short = nn.Conv2d(c_in, c_out, kernel, padding=pad, bias=False)
+        self.bn_short = nn.BatchNorm2d(c_out)
+
+    def forward(self, x):
+        # nearest upsampling: deterministic backward on every device, unlike bilinear on CUDA
+        x = F.interpolate(x, scale_factor=2, mode="nearest")
+        y = F.leaky_relu(self.bn1(self.conv1(x)), _SLOPE)
+        y = self.bn2(self.conv2(y))
+        return F.leaky_relu(y + self.bn_short(self.conv_short(x)), _SLOPE)
+
+
+class DecoderStage(nn.Module):
+    """Up-projection, concatenation of the skip feature map, 3x3 conv-BN-LeakyReLU fusion."""
+
+    def __init__(self, c_in: int, c_skip: int, c_out: int):
+        super().__init__()
+        self.up = UpProjection(c_in, c_out)
+        self.fuse = nn.Sequential(
+            nn.Conv2d(c_out + c_skip, c_out, 3, padding=1, bias=False),
+            nn.BatchNorm2d(c_out),
+            nn.LeakyReLU(_SLOPE),
+        )
+
+    def forward(self, x, skip):
+        return self.fuse(torch.cat([self.up(x), skip], dim=1))
+
+
+class DepthCompletionUNet(nn.Module):
+    """Early-fusion U-Net: (B, C, H, W) input (see :func:`model_inputs`) -> (B, 1, H, W) metres.
+
+    Parameters
+    ----------
+    input_mode : {'rgb', 'rgbd', 'rgbdm'}
+        3, 4 or 5 input channels.
+    width : int
+        Width of the first level; the levels are ``width * (1, 2, 4, 8, 16)`` (32 gives the
+        paper's 32-64-128-256-512).
+    final_layer : bool
+        Add the final 3x3 adjustment layer.
+    """
+
+    def __init__(self, input_mode: str = "rgbd", *, width: int = 32, final_layer: bool = False):
+        super().__init__()
+        if input_mode not in INPUT_CHANNELS:
+            raise ParameterError(
+                f"unknown input mode {input_mode!r}; choose one of {sorted(INPUT_CHANNELS)}"
+            )
+        if int(width) < 1:
+            raise ParameterError(f"width must be >= 1, got {width}")
+        self.input_mode = input_mode
+        self.width = int(width)
+        self.final_layer = bool(final_layer)
+        c_in = INPUT_CHANNELS[input_mode]
+        widths = [max(1, round(b * self.width / 32)) for b in BASE_WIDTHS]
+        self.widths = tuple(widths)
+
+        self.stem = nn.Sequential(
+            nn.Conv2d(c_in, widths[0], 3, padding=1, bias=False),
+            nn.BatchNorm2d(widths[0]),
+            nn.LeakyReLU(_SLOPE),
+        )
+        self.encoder = nn.ModuleList(
+            [ResidualBlock(widths[0], widths[0])]
+            + [ResidualBlock(widths[i - 1], widths[i]) for i in range(1, len(widths))]
+        )
+        self.decoder = nn.ModuleList(
+            [
+                DecoderStage(widths[i], widths[i - 1], widths[i - 1])
+                for i in range(len(widths) - 1, 0, -1)
+            ]
+        )
+        self.head = nn.Conv2d(widths[0], 1, 1)
+        nn.init.zeros_(self.head.weight)
+        nn.init.constant_(self.head.bias, _inverse_softplus(_INIT_DEPTH / _DEPTH_SCALE))
+        if self.final_layer:
+            self.adjust = nn.Conv2d(1 + c_in, 1, 3, padding=1)
+            # starts as the identity on the coarse depth
+            nn.init.zeros_(self.adjust.weight)
+            nn.init.zeros_(self.adjust.bias)
+
+    @property
+    def in_channels(self) -> int:
+        return INPUT_CHANNELS[self.input_mode]
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if x.ndim != 4 or x.shape[1] != self.in_channels:
+            raise ParameterError(
+                f"model for input mode {self.input_mode!r} expects (B, {self.in_channels}, H, W), "
+                f"got {tuple(x.shape)}"
+            )
+        h, w = x.shape[-2:]
+        pad_h, pad_w = (-h) % STRIDE, (-w) % STRIDE
+        if pad_h or pad_w:
+            x = F.pad(x, (0, pad_w, 0, pad_h))
+        feats = []
+        y = self.stem(x)
+        for i, block in enumerate(self.encoder):
+            if i:
+                y = F.max_pool2d(y, 2)
+            y = block(y)
+            feats.append(y)
+        y = feats[-1]
+        for stage, skip in zip(self.decoder, reversed(feats[:-1]), strict=True):
+            y = stage(y, skip)
+        depth = _DEPTH_SCALE * F.softplus(self.head(y))
+        if self.final_layer:
+            depth = depth + self.adjust(torch.cat([depth / _DEPTH_SCALE, x], dim=1)) * _DEPTH_SCALE
+        return depth[:, :, :h, :w]
+
+    def config(self) -> dict:
+        """The constructor arguments (saved in checkpoints)."""
+        return {"input_mode": self.input_mode, "width": self.width, "final_layer": self.final_layer}
+
+
+def _inverse_softplus(y: float) -> float:
+    return y + math.log(-math.expm1(-y))
+
+
+def build_model(config: dict) -> DepthCompletionUNet:
+    """Model from a :meth:`DepthCompletionUNet.config` dictionary."""
+    try:
+        return DepthCompletionUNet(
+            config["input_mode"],
+            width=int(config["width"]),
+            final_layer=bool(config["final_layer"]),
+        )
+    except KeyError as exc:
+        raise ParameterError(f"model configuration lacks {exc.args[0]!r}") from None

@@ -1,0 +1,113 @@
+"""Early-fusion U-Net: shapes per input mode, odd sizes, widths, input stacking."""
+
+from __future__ import annotations
+
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from sparsetools.errors import ParameterError  # noqa: E402
+from sparsetools.train.model import (  # noqa: E402
+    INPUT_CHANNELS,
+    DepthCompletionUNet,
+    build_model,
+    model_inputs,
+)
+
+
+@pytest.mark.parametrize("mode", ["rgb", "rgbd", "rgbdm"])
+@pytest.mark.parametrize("size", [(32, 48), (37, 51), (1, 1), (17, 16)])
+def test_shapes_each_mode_and_odd_sizes(mode, size):
+    torch.manual_seed(0)
+    model = DepthCompletionUNet(mode, width=4, final_layer=True).eval()
+    x = torch.rand(2, INPUT_CHANNELS[mode], *size)
+    with torch.no_grad():
+        y = model(x)
+    assert y.shape == (2, 1, *size)
+    assert torch.isfinite(y).all()
+    assert (y > 0).all()  # softplus head: positive depth
+
+
+def test_widths_scale_with_width():
+    assert DepthCompletionUNet("rgb", width=32).widths == (32, 64, 128, 256, 512)
+    assert DepthCompletionUNet("rgb", width=8).widths == (8, 16, 32, 64, 128)
+    n8 = sum(p.numel() for p in DepthCompletionUNet("rgb", width=8).parameters())
+    n16 = sum(p.numel() for p in DepthCompletionUNet("rgb", width=16).parameters())
+    assert 3.5 < n16 / n8 < 4.1  # conv weights grow with width^2
+
+
+def test_encoder_is_five_levels_down_to_one_sixteenth():
+    model = DepthCompletionUNet("rgbd", width=4)
+    shapes = []
+    hooks = [b.register_forward_hook(lambda m, i, o: shapes.append(o.shape)) for b in model.encoder]
+    model(torch.rand(1, 4, 64, 96))
+    for h in hooks:
+        h.remove()
+    assert [s[-2:] for s in shapes] == [(64, 96), (32, 48), (16, 24), (8, 12), (4, 6)]
+    assert [s[1] for s in shapes] == [4, 8, 16, 32, 64]
+
+
+def test_initial_prediction_is_constant_ten_metres():
+    model = DepthCompletionUNet("rgbdm", width=4).eval()
+    with torch.no_grad():
+        y = model(torch.rand(1, 5, 20, 30))
+    assert torch.allclose(y, torch.full_like(y, 10.0), atol=1e-4)
+
+
+def test_padding_does_not_leak_into_prediction_region():
+    # Bottom/right zero padding: the output for an odd-size input equals the top-left of the
+    # output for the same input explicitly zero-padded to a multiple of 16.
+    torch.manual_seed(1)
+    model = DepthCompletionUNet("rgbd", width=4, final_layer=True).eval()
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(torch.randn_like(p) * 0.1)
+        x = torch.rand(1, 4, 30, 45)
+        padded = torch.nn.functional.pad(x, (0, 3, 0, 2))
+        assert torch.allclose(model(x), model(padded)[:, :, :30, :45], atol=1e-6)
+
+
+def test_gradients_reach_the_input_layer():
+    torch.manual_seed(2)
+    model = DepthCompletionUNet("rgbd", width=4)
+    x = torch.rand(2, 4, 32, 32)
+    for _ in range(2):  # the zero-initialised head passes gradients from the 2nd step on
+        model.zero_grad()
+        y = model(x)
+        (y - 20).abs().mean().backward()
+        with torch.no_grad():
+            model.head.weight.add_(0.01)
+    assert model.stem[0].weight.grad.abs().sum() > 0
+
+
+def test_model_inputs_channels():
+    rgb = torch.rand(2, 3, 5, 7)
+    sparse = torch.zeros(2, 1, 5, 7)
+    sparse[0, 0, 2, 3] = 40.0
+    assert model_inputs(rgb, sparse, "rgb").shape == (2, 3, 5, 7)
+    d = model_inputs(rgb, sparse, "rgbd")
+    assert d.shape == (2, 4, 5, 7)
+    assert d[0, 3, 2, 3] == pytest.approx(2.0)  # 40 m / 20 m
+    m = model_inputs(rgb, sparse, "rgbdm")
+    assert m.shape == (2, 5, 5, 7)
+    assert m[:, 4].sum() == 1 and m[0, 4, 2, 3] == 1
+    assert torch.allclose(m[:, :4], d)
+    with pytest.raises(ParameterError, match="needs sparse"):
+        model_inputs(rgb, None, "rgbd")
+    with pytest.raises(ParameterError, match="unknown input mode"):
+        model_inputs(rgb, sparse, "rgbx")
+
+
+def test_wrong_channels_and_config_round_trip():
+    model = DepthCompletionUNet("rgbd", width=4, final_layer=True)
+    with pytest.raises(ParameterError, match="expects"):
+        model(torch.rand(1, 3, 16, 16))
+    clone = build_model(model.config())
+    clone.load_state_dict(model.state_dict())
+    assert clone.config() == {"input_mode": "rgbd", "width": 4, "final_layer": True}
+    with pytest.raises(ParameterError):
+        DepthCompletionUNet("depth")
+    with pytest.raises(ParameterError):
+        DepthCompletionUNet("rgb", width=0)
+    with pytest.raises(ParameterError, match="lacks"):
+        build_model({"input_mode": "rgb"})
