@@ -63,7 +63,8 @@ class LazyGroup(click.Group):
         except SparsetoolsError as exc:
             if debug:
                 raise
-            click.echo(f"Error: {exc}", err=True)
+            # One line, whatever the message holds (third-party texts can span lines).
+            click.echo(f"Error: {' '.join(str(exc).split())}", err=True)
             ctx.exit(1)
         except KeyboardInterrupt:
             click.echo("Interrupted: completed outputs are kept; rerun to resume.", err=True)

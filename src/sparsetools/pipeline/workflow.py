@@ -187,20 +187,17 @@ def run_workflow(
             failed = res
             break
     write_report(workflow, results, out / "report.md")
-    (out / "steps.json").write_text(
-        json.dumps(
-            [
-                {
-                    "name": r.step.name,
-                    "run": r.step.run,
-                    "exit_code": r.exit_code,
-                    "seconds": round(r.seconds, 2),
-                }
-                for r in results
-            ],
-            indent=1,
-        )
-    )
+    steps = [
+        {
+            "name": r.step.name,
+            "run": r.step.run,
+            "exit_code": r.exit_code,
+            "seconds": round(r.seconds, 2),
+        }
+        for r in results
+    ]
+    with atomic_path(out / "steps.json") as tmp:
+        tmp.write_text(json.dumps(steps, indent=1), encoding="utf-8")
     if failed is not None:
         last = (failed.stderr.strip().splitlines() or ["(no message)"])[-1]
         raise ParameterError(f"step '{failed.step.name}' failed (exit {failed.exit_code}): {last}")
