@@ -111,3 +111,40 @@ def test_wrong_channels_and_config_round_trip():
         DepthCompletionUNet("rgb", width=0)
     with pytest.raises(ParameterError, match="lacks"):
         build_model({"input_mode": "rgb"})
+
+
+def test_final_layer_can_put_measured_depth_in_place():
+    # adjust = D + (S - M * D) at the centre tap: the measured depth wherever there is one,
+    # the network's prediction elsewhere -- a linear function of the layer's inputs.
+    torch.manual_seed(3)
+    model = DepthCompletionUNet("rgbd", width=4, final_layer=True).eval()
+    c_in = INPUT_CHANNELS["rgbd"]
+    with torch.no_grad():
+        model.adjust.weight.zero_()
+        # inputs: [D/20, rgb (3), S/20, M, M*D/20]
+        model.adjust.weight[0, 1 + 3, 1, 1] = 1.0  # + S
+        model.adjust.weight[0, 1 + c_in + 1, 1, 1] = -1.0  # - M * D
+        rgb = torch.rand(1, 3, 20, 24)
+        sparse = torch.zeros(1, 1, 20, 24)
+        sparse[0, 0, 5, 7], sparse[0, 0, 19, 23] = 33.0, 4.5
+        out = model(model_inputs(rgb, sparse, "rgbd"))
+        coarse = DepthCompletionUNet.forward(
+            _without_final(model), model_inputs(rgb, sparse, "rgbd")
+        )
+    assert out[0, 0, 5, 7] == pytest.approx(33.0, rel=1e-5)
+    assert out[0, 0, 19, 23] == pytest.approx(4.5, rel=1e-5)
+    empty = sparse[0, 0] == 0
+    assert torch.allclose(out[0, 0][empty], coarse[0, 0][empty], atol=1e-4)
+
+
+def _without_final(model):
+    clone = DepthCompletionUNet(model.input_mode, width=model.width, final_layer=False).eval()
+    state = {k: v for k, v in model.state_dict().items() if not k.startswith("adjust.")}
+    clone.load_state_dict(state)
+    return clone
+
+
+def test_final_layer_inputs_per_mode():
+    assert DepthCompletionUNet("rgb", width=4, final_layer=True).adjust.in_channels == 1 + 3
+    assert DepthCompletionUNet("rgbd", width=4, final_layer=True).adjust.in_channels == 1 + 4 + 2
+    assert DepthCompletionUNet("rgbdm", width=4, final_layer=True).adjust.in_channels == 1 + 5 + 2

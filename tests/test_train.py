@@ -23,6 +23,7 @@ from sparsetools.train.data import (  # noqa: E402
 from sparsetools.train.loop import (  # noqa: E402
     TrainConfig,
     draw_curves,
+    epoch_lr,
     evaluate_checkpoint,
     evaluate_folders,
     load_checkpoint,
@@ -146,6 +147,31 @@ def test_resume_mid_epoch_after_max_steps(dataset, tmp_path):
         load_checkpoint(tmp_path / "cut" / "last.pt")["model"],
         load_checkpoint(tmp_path / "full" / "last.pt")["model"],
     )
+
+
+def test_lr_schedules():
+    c = TrainConfig(dataset="x", out_dir="y", lr=1e-2, epochs=5)
+    assert [epoch_lr(c, e) for e in range(3)] == [1e-2] * 3
+    c.lr_schedule, c.lr_step, c.lr_gamma = "step", 2, 0.2
+    assert [epoch_lr(c, e) for e in range(5)] == pytest.approx([1e-2, 1e-2, 2e-3, 2e-3, 4e-4])
+    c.lr_schedule = "cosine"
+    lrs = [epoch_lr(c, e) for e in range(5)]
+    assert lrs[0] == pytest.approx(1e-2) and lrs[-1] == pytest.approx(1e-4)
+    assert lrs[2] == pytest.approx(1e-2 * (0.01 + 0.99 * 0.5))
+    assert all(lrs[i] > lrs[i + 1] for i in range(len(lrs) - 1))
+    c.lr_schedule = "exp"
+    with pytest.raises(ParameterError, match="schedule"):
+        c.validate()
+
+
+def test_resume_is_exact_with_step_schedule(dataset, tmp_path):
+    kw = dict(lr_schedule="step", lr_step=1, lr_gamma=0.5, epochs=2)
+    train(config(dataset, tmp_path / "full", **kw))
+    train(config(dataset, tmp_path / "half", **{**kw, "epochs": 1}))
+    train(config(dataset, tmp_path / "half", **kw), resume=True)
+    rows = read_rows(tmp_path / "full")
+    assert read_rows(tmp_path / "half") == rows
+    assert [float(r["lr"]) for r in rows] == [3e-3, 1.5e-3]
 
 
 def test_max_steps_caps_total_steps(dataset, tmp_path):

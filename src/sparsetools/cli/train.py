@@ -30,6 +30,9 @@ _FIELDS = {
     "batch_size": "batch_size",
     "lr": "lr",
     "optimizer": "optimizer",
+    "lr_schedule": "lr_schedule",
+    "lr_step": "lr_step",
+    "lr_gamma": "lr_gamma",
     "crop": "crop",
     "seed": "seed",
     "width": "width",
@@ -80,6 +83,28 @@ _FIELDS = {
     help="Learning rate.",
 )
 @click.option("--optimizer", type=click.Choice(["adam", "sgd"]), default="adam", show_default=True)
+@click.option(
+    "--lr-schedule",
+    type=click.Choice(["constant", "step", "cosine"]),
+    default="constant",
+    show_default=True,
+    help="Learning rate per epoch: constant; x GAMMA every --lr-step epochs; cosine down to "
+    "1/100 over --epochs.",
+)
+@click.option(
+    "--lr-step",
+    type=click.IntRange(min=1),
+    default=5,
+    show_default=True,
+    help="Epochs between decays of --lr-schedule step.",
+)
+@click.option(
+    "--lr-gamma",
+    type=click.FloatRange(min=0, max=1, min_open=True),
+    default=0.5,
+    show_default=True,
+    help="Decay factor of --lr-schedule step.",
+)
 @click.option(
     "--crop",
     callback=crop_hxw,

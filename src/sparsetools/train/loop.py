@@ -48,6 +48,7 @@ __all__ = [
     "CHECKPOINT_FORMAT",
     "TrainConfig",
     "draw_curves",
+    "epoch_lr",
     "evaluate_checkpoint",
     "evaluate_folders",
     "load_checkpoint",
@@ -80,6 +81,9 @@ class TrainConfig:
     batch_size: int = 8
     lr: float = 1e-3
     optimizer: str = "adam"
+    lr_schedule: str = "constant"
+    lr_step: int = 5
+    lr_gamma: float = 0.5
     crop: tuple[int, int] | None = None
     seed: int = 0
     width: int = 32
@@ -121,6 +125,15 @@ class TrainConfig:
             )
         if self.loss not in LOSSES:
             raise ParameterError(f"unknown loss {self.loss!r}; choose one of {sorted(LOSSES)}")
+        if self.lr_schedule not in ("constant", "step", "cosine"):
+            raise ParameterError(
+                f"unknown learning-rate schedule {self.lr_schedule!r}; "
+                "choose constant, step or cosine"
+            )
+        if self.lr_step < 1 or not 0 < self.lr_gamma <= 1:
+            raise ParameterError(
+                f"need lr_step >= 1 and 0 < lr_gamma <= 1, got {self.lr_step}, {self.lr_gamma}"
+            )
         if self.optimizer not in ("adam", "sgd"):
             raise ParameterError(f"unknown optimizer {self.optimizer!r}; choose adam or sgd")
         for name in ("epochs", "batch_size", "width"):
@@ -625,6 +638,21 @@ def _resumed_config(config: TrainConfig, ckpt: dict, explicit: set[str] | None) 
     return saved
 
 
+def epoch_lr(config: TrainConfig, epoch: int) -> float:
+    """Learning rate of (0-based) ``epoch``: a pure function of the configuration and epoch.
+
+    ``constant``: ``lr``; ``step``: ``lr * lr_gamma ** (epoch // lr_step)`` (Ma & Karaman);
+    ``cosine``: from ``lr`` down to ``lr / 100`` over ``epochs`` (so a resumed run with a larger
+    ``epochs`` follows a new, longer schedule).
+    """
+    if config.lr_schedule == "step":
+        return config.lr * config.lr_gamma ** (epoch // config.lr_step)
+    if config.lr_schedule == "cosine":
+        t = min(epoch / max(config.epochs - 1, 1), 1.0)
+        return config.lr * (0.01 + 0.99 * 0.5 * (1.0 + math.cos(math.pi * t)))
+    return config.lr
+
+
 def _make_optimizer(model, config: TrainConfig):
     if config.optimizer == "adam":
         return torch.optim.Adam(model.parameters(), lr=config.lr)
@@ -757,6 +785,8 @@ def train(
                 workers=config.workers,
                 seed=config.seed + epoch,
             )
+            for group in optimizer.param_groups:
+                group["lr"] = epoch_lr(config, epoch)
             model.train()
             t0 = time.perf_counter()
             with _progress(

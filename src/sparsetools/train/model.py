@@ -16,8 +16,12 @@ input ("early fusion") and go through one encoder-decoder:
 - head: a 1x1 convolution to one channel, a softplus times 20 m, so depth is positive (needed
   by the SILog loss), nearly linear in the head's output above a few metres, and the head works
   on O(1) numbers; its bias starts at 10 m;
-- optional final 3x3 adjustment layer (UltraDepth): a 3x3 convolution over the coarse depth
-  and the network input that adds a residual correction to the depth.
+- optional final 3x3 adjustment layer (UltraDepth): one 3x3 convolution that adds a
+  correction to the coarse depth D. It sees D and the network input and, when the input holds
+  sparse depth S with validity mask M, also M and M * D: then ``D + a (S - M D)`` is a linear
+  function of its inputs, so the layer can put the measured depth in place of the prediction
+  at (and next to) the LiDAR pixels, which the encoder-decoder learns only slowly. It starts at
+  zero (the plain model).
 
 Inputs of any size: the network pads to a multiple of 16 at the bottom and right, and crops
 the prediction back.
@@ -184,7 +188,8 @@ class DepthCompletionUNet(nn.Module):
         nn.init.zeros_(self.head.weight)
         nn.init.constant_(self.head.bias, _inverse_softplus(_INIT_DEPTH / _DEPTH_SCALE))
         if self.final_layer:
-            self.adjust = nn.Conv2d(1 + c_in, 1, 3, padding=1)
+            extra = 2 if input_mode != "rgb" else 0  # M and M * D
+            self.adjust = nn.Conv2d(1 + c_in + extra, 1, 3, padding=1)
             # starts as the identity on the coarse depth
             nn.init.zeros_(self.adjust.weight)
             nn.init.zeros_(self.adjust.bias)
@@ -215,7 +220,12 @@ class DepthCompletionUNet(nn.Module):
             y = stage(y, skip)
         depth = _DEPTH_SCALE * F.softplus(self.head(y))
         if self.final_layer:
-            depth = depth + self.adjust(torch.cat([depth / _DEPTH_SCALE, x], dim=1)) * _DEPTH_SCALE
+            coarse = depth / _DEPTH_SCALE
+            parts = [coarse, x]
+            if self.input_mode != "rgb":
+                mask = (x[:, 3:4] > 0).to(x.dtype)  # channel 3 = sparse depth / 20 m
+                parts += [mask, mask * coarse]
+            depth = depth + self.adjust(torch.cat(parts, dim=1)) * _DEPTH_SCALE
         return depth[:, :, :h, :w]
 
     def config(self) -> dict:
