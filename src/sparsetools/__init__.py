@@ -46,6 +46,7 @@ _LAZY = {
     "jbf_expand": ".ops.jbf",
     "height_extend": ".ops.jbf",
     "intrinsic_error": ".ops.intrinsic",
+    "depth_metrics": ".ops.metrics",
     "lowlight": ".ops.lowlight",
     "LowLightParams": ".ops.lowlight",
     "LowLightRecord": ".ops.lowlight",
