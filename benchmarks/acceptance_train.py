@@ -168,12 +168,12 @@ def train_and_eval(name: str, ds: Path, runs: Path, args, *, input_mode: str) ->
     ]
     if args.crop:
         common += ["--crop", args.crop]
-    t0 = time.perf_counter()
     if not (run / "last.pt").is_file():
         sparsetools("train", ds, "-o", run, "--input", input_mode, *common)
     elif _epochs_done(run) < args.epochs:
         sparsetools("train", ds, "-o", run, "--resume", "--epochs", args.epochs)
-    seconds = time.perf_counter() - t0
+    with open(run / "metrics.csv") as f:  # training time as logged, also for reused runs
+        seconds = sum(float(r["seconds"]) for r in csv.DictReader(f))
     res = json.loads(
         sparsetools(
             "eval", "--checkpoint", run / "best.pt", ds, "--split", "test", "--json", capture=True
@@ -192,6 +192,27 @@ def train_and_eval(name: str, ds: Path, runs: Path, args, *, input_mode: str) ->
 def _epochs_done(run: Path) -> int:
     with open(run / "metrics.csv") as f:
         return sum(1 for r in csv.DictReader(f) if r["complete"] == "1")
+
+
+def nearest_fill_reference(ds: Path) -> dict:
+    """Test metrics of the LiDAR alone, holes filled with the nearest measured pixel."""
+    from scipy import ndimage
+
+    from sparsetools.io.dataset import DatasetReader
+    from sparsetools.ops.metrics import aggregate_metrics, depth_metrics
+
+    test = DatasetReader(ds).split("test")
+    per_image = []
+    for i in range(len(test)):
+        s = test.sample(i)
+        sparse = s["sparse"]
+        if not (sparse > 0).any():
+            continue
+        nearest = ndimage.distance_transform_edt(
+            sparse == 0, return_distances=False, return_indices=True
+        )
+        per_image.append(depth_metrics(sparse[tuple(nearest)], s["gt"]))
+    return aggregate_metrics(per_image)
 
 
 def _metric_rows(run: Path) -> list[dict]:
@@ -225,13 +246,50 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def _write_png(path: Path, rgb: np.ndarray) -> None:
+    import cv2
+
+    # maximum PNG compression: the docs pictures must stay small
+    ok, buf = cv2.imencode(".png", rgb[:, :, ::-1], [cv2.IMWRITE_PNG_COMPRESSION, 9])
+    assert ok
+    path.write_bytes(buf.tobytes())
+
+
+def docs_pictures(run: Path, dataset: Path, img: Path) -> None:
+    """Curves of ``run`` and its predictions on two test frames (docs/img/train_*.png)."""
+    import torch
+
+    from sparsetools.io.dataset import DatasetReader
+    from sparsetools.train.loop import (
+        _model_from_checkpoint,
+        draw_curves,
+        load_checkpoint,
+        prediction_picture,
+    )
+    from sparsetools.train.model import model_inputs
+
+    with open(run / "metrics.csv") as f:
+        history = [{k: float(v) for k, v in r.items()} for r in csv.DictReader(f)]
+    _write_png(img / "train_curves.png", draw_curves(history, loss_name="l1"))
+    model = _model_from_checkpoint(load_checkpoint(run / "best.pt")).eval()
+    test = DatasetReader(dataset).split("test")
+    rows = []
+    for i in (0, len(test) // 2):
+        s = test.sample(i)
+        rgb = torch.from_numpy(s["rgb"].transpose(2, 0, 1).copy()).float()[None] / 255
+        sparse = torch.from_numpy(s["sparse"])[None, None]
+        with torch.no_grad():
+            pred = model(model_inputs(rgb, sparse, model.input_mode))[0, 0].numpy()
+        rows.append((s["rgb"], s["sparse"], pred, s["gt"]))
+    _write_png(img / "train_predictions.png", prediction_picture(rows))
+
+
 def compare_picture(results: list[dict], datasets: dict[int, Path], out: Path) -> None:
     """rgb | rgb-only | 1 | 4 | 16 | 64 beams predictions | gt for two test frames."""
     import cv2
     import torch
 
     from sparsetools.io.dataset import DatasetReader
-    from sparsetools.io.image import write_image
     from sparsetools.ops.colormap import colorize_depth, side_by_side
     from sparsetools.train.loop import _model_from_checkpoint, load_checkpoint
     from sparsetools.train.model import model_inputs
@@ -261,7 +319,7 @@ def compare_picture(results: list[dict], datasets: dict[int, Path], out: Path) -
         cv2.putText(
             header, name, (k * w + 3, 13), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (0, 0, 0), 1, cv2.LINE_AA
         )
-    write_image(out, np.concatenate([header, body], axis=0))
+    _write_png(out, np.concatenate([header, body], axis=0))
 
 
 def main(argv=None) -> int:
@@ -325,6 +383,11 @@ def main(argv=None) -> int:
         )
         print(f"two runs with the same seed: identical metrics.csv and test metrics: {determinism}")
 
+    fills = []
+    for n in (*BEAMS, 64):
+        ref = nearest_fill_reference(datasets[n])
+        fills.append({"name": f"{n}-beam LiDAR alone, nearest fill", "seconds": 0.0, **ref})
+
     rgb, by_n = results[0], {int(r["dataset"].split("_")[1][:-5]): r for r in results[1:]}
     checks = {
         "rgbd (16 beams) RMSE < 0.5 x rgb RMSE": by_n[16]["rmse"] < 0.5 * rgb["rmse"],
@@ -347,21 +410,23 @@ def main(argv=None) -> int:
         "",
         table(results),
         "",
+        "Reference without learning (the LiDAR alone, every pixel given the depth of the "
+        "nearest measured pixel):",
+        "",
+        table(fills),
+        "",
     ]
     md += [f"- {'PASS' if ok else 'FAIL'}: {name}" for name, ok in checks.items()]
     report = "\n".join(md)
     (out / "results.md").write_text(report + "\n")
     (out / "results.json").write_text(
-        json.dumps({"results": results, "checks": checks}, indent=1) + "\n"
+        json.dumps({"results": results, "nearest_fill": fills, "checks": checks}, indent=1) + "\n"
     )
     print(report)
 
     if args.docs:
         img = REPO / "docs" / "img"
-        run16 = runs / "rgbd_16beams"
-        shutil.copyfile(run16 / "curves.png", img / "train_curves.png")
-        last = sorted((run16 / "predictions").glob("epoch_*.png"))[-1]
-        shutil.copyfile(last, img / "train_predictions.png")
+        docs_pictures(runs / "rgbd_16beams", datasets[16], img)
         compare_picture(results, datasets, img / "train_compare.png")
         print(f"pictures written to {img}")
     print(f"total {time.perf_counter() - t0:.0f} s")

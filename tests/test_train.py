@@ -505,6 +505,12 @@ def test_pictures():
     assert img.ndim == 3 and img.dtype == np.uint8
     # one epoch only (flat ranges) still draws
     assert draw_curves(history[:1]).shape == img.shape
+    # values over several decades: logarithmic axis, same picture size
+    steep = [
+        dict(r, train_loss=100.0 / r["epoch"] ** 4, rmse=50.0 / r["epoch"] ** 3) for r in history
+    ]
+    assert draw_curves(steep).shape == img.shape
+    assert not np.array_equal(draw_curves(steep), img)
 
 
 def test_worker_error_is_one_line(tmp_path):

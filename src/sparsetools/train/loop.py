@@ -342,6 +342,15 @@ def _nice_ticks(
     return lo_t, hi_t, ticks
 
 
+def _log_ticks(lo: float, hi: float) -> tuple[float, float, list[float]]:
+    """Axis range and ticks (1, 2, 5 x 10^k) of a logarithmic axis covering [lo, hi] > 0."""
+    k0, k1 = math.floor(math.log10(lo)), math.ceil(math.log10(hi))
+    ticks = [m * 10.0**k for k in range(k0, k1 + 1) for m in (1, 2, 5)]
+    y0 = max(t for t in ticks if t <= lo * (1 + 1e-9))
+    y1 = min(t for t in ticks if t >= hi * (1 - 1e-9))
+    return y0, y1, [t for t in ticks if y0 <= t <= y1]
+
+
 def _fmt(v: float) -> str:
     return f"{v:.3g}" if abs(v) < 1e4 else f"{v:.2e}"
 
@@ -353,7 +362,9 @@ def _plot_panel(
     xlabel: str,
     ylabel: str,
     size: tuple[int, int] = (440, 300),
+    log: bool | None = None,
 ) -> np.ndarray:
+    """One line plot; ``log`` = logarithmic y axis (default: when positive values span > 10x)."""
     import cv2
 
     w, h = size
@@ -363,11 +374,20 @@ def _plot_panel(
     xs_all = [x for _, xs, _, _ in series for x in xs]
     ys_all = [y for _, _, ys, _ in series for y in ys if math.isfinite(y)]
     x0, x1, xt = _nice_ticks(min(xs_all, default=0), max(xs_all, default=1), integer=True)
-    y0, y1, yt = _nice_ticks(min(ys_all, default=0), max(ys_all, default=1))
+    lo, hi = min(ys_all, default=0.0), max(ys_all, default=1.0)
+    if log is None:
+        log = lo > 0 and hi / lo > 10
+    if log and lo > 0:
+        y0, y1, yt = _log_ticks(lo, hi)
+        fy = math.log10
+        ylabel = f"{ylabel}, log"
+    else:
+        y0, y1, yt = _nice_ticks(lo, hi)
+        fy = float
 
     def px(x, y):
         u = left + (x - x0) / (x1 - x0) * (w - left - right)
-        v = h - bottom - (y - y0) / (y1 - y0) * (h - top - bottom)
+        v = h - bottom - (fy(y) - fy(y0)) / (fy(y1) - fy(y0)) * (h - top - bottom)
         return round(u), round(v)
 
     grey, black = (225, 225, 225), (0, 0, 0)
