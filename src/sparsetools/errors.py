@@ -30,7 +30,34 @@ class CalibrationError(FormatError):
 
 
 class ParameterError(SparsetoolsError, ValueError):
-    """An argument is outside its valid range or inconsistent with another one."""
+    """An argument is outside its valid range or inconsistent with another one.
+
+    Parameters
+    ----------
+    message : str
+    param : str, optional
+        The parameter's name as the library spells it (``"max_depth"``) or as an option
+        (``"--max-depth"``); ``str(error)`` names it as the option
+        (``--max-depth: must be > 0``), ``error.message`` is the message alone.
+    """
+
+    def __init__(self, message: str, *, param: str | None = None):
+        super().__init__(message)
+        self.message = message
+        self.param = param
+
+    def __str__(self) -> str:
+        opt = self.option
+        if opt and not self.message.startswith(opt):
+            return f"{opt}: {self.message}"
+        return self.message
+
+    @property
+    def option(self) -> str | None:
+        """``--max-depth`` for ``param="max_depth"`` (None without a parameter)."""
+        if not self.param:
+            return None
+        return self.param if self.param.startswith("-") else "--" + self.param.replace("_", "-")
 
 
 class OutputError(SparsetoolsError):
