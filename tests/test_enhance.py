@@ -124,3 +124,76 @@ def test_constant_image_and_bad_input():
         apply_lut(flat, np.zeros((256, 2), np.uint8))
     with pytest.raises(ParameterError):
         apply_lut(flat, np.zeros(255, np.uint8))
+
+
+# ----------------------------------------------------------------- RNW's integer arithmetic
+
+
+def _rnw_reference_lut(channel: np.ndarray, clip: float) -> list[int]:
+    """From issue 17's description of RNW's released code, in Python integers: clip limit
+    truncated to an integer, round(excess / 256) whole pixels added to every bin, table
+    values truncated to uint8."""
+    n = channel.size
+    counts = [0] * 256
+    for v in channel.ravel().tolist():
+        counts[v] += 1
+    limit = int(clip * n)
+    excess = sum(max(c - limit, 0) for c in counts)
+    add = round(excess / 256)
+    hist = [min(c, limit) + add for c in counts]
+    cdf, acc = [], 0
+    for h in hist:
+        acc += h
+        cdf.append(acc)
+    nonzero = [c for c in cdf if c > 0]
+    if not nonzero or nonzero[0] == cdf[-1]:
+        return list(range(256))
+    lo, hi = nonzero[0], cdf[-1]
+    return [int(Fraction(max(c - lo, 0) * 255, hi - lo)) for c in cdf]
+
+
+@pytest.mark.parametrize("clip", [0.004, 0.008, 0.05, 1.0])
+def test_rnw_rounding_matches_its_description(clip):
+    for img in _images():
+        lut = mcie_lut(img, clip=clip, rounding="rnw")
+        assert lut.shape == (256, 3) and lut.dtype == np.uint8
+        for c in range(3):
+            assert lut[:, c].tolist() == _rnw_reference_lut(img[:, :, c], clip)
+        assert np.all(np.diff(lut.astype(int), axis=0) >= 0)
+    # The default is unchanged by the option.
+    np.testing.assert_array_equal(
+        mcie_lut(_images()[0]), mcie_lut(_images()[0], rounding="nearest")
+    )
+    with pytest.raises(ParameterError, match="rounding"):
+        mcie_lut(_images()[0], rounding="floor")
+
+
+def test_rnw_rounding_on_a_tiny_image_with_a_zero_clip_limit():
+    # 10 pixels: int(0.004 * 10) = 0, every bin clipped to 0, round(10 / 256) = 0 added.
+    img = np.arange(10, dtype=np.uint8).reshape(2, 5)
+    np.testing.assert_array_equal(mcie_lut(img, rounding="rnw")[:, 0], np.arange(256))
+    assert mcie_lut(img, rounding="rnw")[:, 0].tolist() == _rnw_reference_lut(img, 0.004)
+
+
+def _real_rgb_images(real_dir):
+    from sparsetools.io.image import read_image
+
+    files = sorted((real_dir / "kitti-object-kuixu" / "image_2").glob("*.png"))
+    files += sorted((real_dir / "kitti-depth-gt-metric3d" / "rgb").glob("*.png"))
+    assert len(files) == 6
+    return [read_image(f) for f in files]
+
+
+@pytest.mark.real
+def test_rnw_rounding_on_real_kitti_images(real_dir):
+    """Bit-exact with the description on real frames; half the entries are one level lower."""
+    differ, total = 0, 0
+    for img in _real_rgb_images(real_dir):
+        rnw = mcie_lut(img, rounding="rnw")
+        for c in range(3):
+            assert rnw[:, c].tolist() == _rnw_reference_lut(img[:, :, c], 0.004)
+        d = mcie_lut(img).astype(int) - rnw.astype(int)
+        assert set(np.unique(d)) <= {0, 1}  # truncation never gives a higher level
+        differ += int(np.count_nonzero(d))
+        total += d.size
+    assert 0.4 < differ / total < 0.6

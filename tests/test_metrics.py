@@ -51,6 +51,7 @@ def reference_metrics(pred, gt, min_depth=1e-3, max_depth=80.0, crop=None, media
         "sq_rel_kitti": mean([((g - p) / g) ** 2 for p, g in pairs]),
         "rmse": math.sqrt(mean([(g - p) ** 2 for p, g in pairs])),
         "rmse_log": math.sqrt(mean([(math.log(g) - math.log(p)) ** 2 for p, g in pairs])),
+        "log10": mean([abs(math.log10(g) - math.log10(p)) for p, g in pairs]),
         "silog": 100 * math.sqrt(max(mean([v * v for v in d]) - mean(d) ** 2, 0)),
         "delta1": mean([1.0 if max(g / p, p / g) < 1.25 else 0.0 for p, g in pairs]),
         "delta2": mean([1.0 if max(g / p, p / g) < 1.5625 else 0.0 for p, g in pairs]),
@@ -111,6 +112,8 @@ def test_hand_computed_values():
     assert m["mae"] == pytest.approx(3.5)
     # ratios 1.2 and 1.333: delta1 counts one, delta2 counts both
     assert (m["delta1"], m["delta2"], m["delta3"]) == (0.5, 1.0, 1.0)
+    # BTS's log10: mean |log10 g - log10 p| = (log10(1.2) + log10(4/3)) / 2
+    assert m["log10"] == pytest.approx((math.log10(1.2) + math.log10(4 / 3)) / 2)
     # inverse depth in 1/km: 100 - 83.33 and 50 - 66.67
     assert m["imae"] == pytest.approx((100 / 6 + 50 / 3) / 2)
     assert m["irmse"] == pytest.approx(math.sqrt(((100 / 6) ** 2 + (50 / 3) ** 2) / 2))
@@ -126,6 +129,7 @@ def test_perfect_prediction_and_scale_invariance_of_silog():
         "sq_rel_kitti",
         "rmse",
         "rmse_log",
+        "log10",
         "silog",
         "mae",
         "irmse",
@@ -137,6 +141,7 @@ def test_perfect_prediction_and_scale_invariance_of_silog():
     scaled = depth_metrics(gt * 0.5, gt)
     assert scaled["silog"] == pytest.approx(0.0, abs=1e-6)
     assert scaled["rmse_log"] == pytest.approx(math.log(2), rel=1e-6)
+    assert scaled["log10"] == pytest.approx(math.log10(2), rel=1e-6)
     # median scaling recovers the scale exactly
     ms = depth_metrics(gt * 0.5, gt, median_scaling=True)
     assert ms["scale"] == pytest.approx(2.0)

@@ -9,6 +9,11 @@ uniformly over all bins (once, not iteratively as CLAHE does), and
 with ``cdf_min`` the smallest non-zero value of the cumulative histogram. The same table is
 applied to every frame of the sequence (``cv2.LUT``), so brightness stays consistent between
 target and source frames and the photometric loss remains valid.
+
+``rounding="rnw"`` reproduces the integer arithmetic of RNW's released implementation instead
+(issue 17): the clip limit truncated to an integer, the excess spread as
+``round(excess / 256)`` whole pixels per bin, and the table values truncated (not rounded) to
+uint8. It differs from the default by at most one level per entry.
 """
 
 from __future__ import annotations
@@ -19,7 +24,10 @@ import numpy as np
 
 from ..errors import ParameterError
 
-__all__ = ["apply_lut", "mcie_lut"]
+__all__ = ["ROUNDINGS", "apply_lut", "mcie_lut"]
+
+#: Table arithmetic: exact with rounding to nearest (default), or RNW's integer version.
+ROUNDINGS = ("nearest", "rnw")
 
 
 def _check_rgb8(image: np.ndarray, what: str) -> np.ndarray:
@@ -36,7 +44,9 @@ def _check_rgb8(image: np.ndarray, what: str) -> np.ndarray:
     return image
 
 
-def mcie_lut(reference: np.ndarray, *, clip: float = 0.004, bins: int = 256) -> np.ndarray:
+def mcie_lut(
+    reference: np.ndarray, *, clip: float = 0.004, bins: int = 256, rounding: str = "nearest"
+) -> np.ndarray:
     """Per-channel MCIE lookup table built from one reference frame.
 
     Parameters
@@ -48,6 +58,12 @@ def mcie_lut(reference: np.ndarray, *, clip: float = 0.004, bins: int = 256) -> 
         1 or more disables clipping (plain histogram equalisation).
     bins : int
         Must be 256 (8-bit images); kept as a parameter to say so explicitly.
+    rounding : {"nearest", "rnw"}
+        "nearest": limit ``clip * N`` and excess ``E / 256`` per bin as real numbers, table
+        values rounded to nearest (half to even). "rnw": RNW's released implementation's
+        integer arithmetic: limit ``int(clip * N)``, ``round(E / 256)`` whole pixels added to
+        every bin (half to even, as Python's ``round``), table values truncated, i.e.
+        ``floor((cdf - cdf_min) * 255 / (cdf_max - cdf_min))`` computed exactly in integers.
 
     Returns
     -------
@@ -60,23 +76,47 @@ def mcie_lut(reference: np.ndarray, *, clip: float = 0.004, bins: int = 256) -> 
         raise ParameterError(f"MCIE works on 8-bit images with 256 bins, got bins={bins}")
     if not (math.isfinite(clip) and clip > 0):
         raise ParameterError(f"clip limit must be > 0, got {clip}")
+    if rounding not in ROUNDINGS:
+        raise ParameterError(f"unknown rounding '{rounding}' (choose {', '.join(ROUNDINGS)})")
     ref = _check_rgb8(reference, "reference frame")
     n_pix = ref.shape[0] * ref.shape[1]
-    limit = clip * n_pix
     lut = np.empty((256, ref.shape[2]), np.uint8)
     for c in range(ref.shape[2]):
-        hist = np.bincount(ref[:, :, c].ravel(), minlength=256).astype(np.float64)
-        excess = np.maximum(hist - limit, 0.0).sum()
-        hist = np.minimum(hist, limit) + excess / 256.0
-        cdf = np.cumsum(hist)
-        nonzero = cdf[cdf > 0]
-        cdf_min, cdf_max = nonzero[0], cdf[-1]
-        if cdf_max - cdf_min <= 0:
-            lut[:, c] = np.arange(256, dtype=np.uint8)
-            continue
-        mapped = (cdf - cdf_min) / (cdf_max - cdf_min) * 255.0
-        lut[:, c] = np.rint(np.clip(mapped, 0, 255)).astype(np.uint8)
+        counts = np.bincount(ref[:, :, c].ravel(), minlength=256)
+        if rounding == "rnw":
+            lut[:, c] = _rnw_table(counts, int(clip * n_pix))
+        else:
+            lut[:, c] = _nearest_table(counts, clip * n_pix)
     return lut
+
+
+def _nearest_table(counts: np.ndarray, limit: float) -> np.ndarray:
+    hist = counts.astype(np.float64)
+    excess = np.maximum(hist - limit, 0.0).sum()
+    hist = np.minimum(hist, limit) + excess / 256.0
+    cdf = np.cumsum(hist)
+    nonzero = cdf[cdf > 0]
+    cdf_min, cdf_max = nonzero[0], cdf[-1]
+    if cdf_max - cdf_min <= 0:
+        return np.arange(256, dtype=np.uint8)
+    mapped = (cdf - cdf_min) / (cdf_max - cdf_min) * 255.0
+    return np.rint(np.clip(mapped, 0, 255)).astype(np.uint8)
+
+
+def _rnw_table(counts: np.ndarray, limit: int) -> np.ndarray:
+    # Integers throughout: with at most 2^31 pixels, cdf * 255 fits int64 exactly.
+    hist = counts.astype(np.int64)
+    excess = int(np.maximum(hist - limit, 0).sum())
+    hist = np.minimum(hist, limit) + round(excess / 256)
+    cdf = np.cumsum(hist)
+    nonzero = cdf[cdf > 0]
+    if nonzero.size == 0:  # clip limit 0 (fewer than 1 / clip pixels): nothing to map
+        return np.arange(256, dtype=np.uint8)
+    cdf_min, cdf_max = int(nonzero[0]), int(cdf[-1])
+    if cdf_max == cdf_min:
+        return np.arange(256, dtype=np.uint8)
+    mapped = np.maximum(cdf - cdf_min, 0) * 255 // (cdf_max - cdf_min)
+    return mapped.astype(np.uint8)
 
 
 def apply_lut(image: np.ndarray, lut: np.ndarray) -> np.ndarray:

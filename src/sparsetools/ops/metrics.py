@@ -13,6 +13,7 @@ sq_rel         mean (g - p)^2 / g  (monodepth2 "sq_rel")        m
 sq_rel_kitti   mean ((g - p) / g)^2  (KITTI devkit "sqErrorRel") -
 rmse           sqrt(mean (g - p)^2)                              m
 rmse_log       sqrt(mean (log g - log p)^2)                      -
+log10          mean |log10 g - log10 p|  (BTS "log10")          -
 silog          100 sqrt(mean d^2 - (mean d)^2), d = log p - log g  100 log(m)
 delta1..3      fraction of max(g/p, p/g) < 1.25^k                -
 mae            mean |g - p|                                      m
@@ -48,6 +49,7 @@ METRIC_NAMES = (
     "sq_rel_kitti",
     "rmse",
     "rmse_log",
+    "log10",
     "silog",
     "delta1",
     "delta2",
@@ -171,6 +173,7 @@ def depth_metrics(
         sq_rel_kitti=float(np.mean(sq_err / (g * g))),
         rmse=float(np.sqrt(np.mean(sq_err))),
         rmse_log=float(np.sqrt(np.mean(log_diff * log_diff))),
+        log10=float(np.mean(np.abs(np.log10(p) - np.log10(g)))),
         silog=100.0 * math.sqrt(silog_var),
         delta1=float(np.mean(ratio < 1.25)),
         delta2=float(np.mean(ratio < 1.25**2)),

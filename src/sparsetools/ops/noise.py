@@ -2,36 +2,47 @@
 
 The model works in linear raw-like units (digital numbers after black-level subtraction):
 
-    z = K * Poisson(x / K) + N_read + N_row + N_q
+    z = K * Poisson(x / K) + N_read + N_row + N_q (+ b_c)
 
 - shot noise: photo-electron counts ``x / K`` are Poisson, ``K`` the system gain (DN per e-),
   with ``log K ~ U(log K_min, log K_max)``;
 - read noise: Tukey-lambda with shape ``lambda`` and scale ``sigma_read``,
-  ``log sigma_read ~ N(slope * log K + bias, sigma)`` (or a Gaussian of the same scale);
+  ``log sigma_read ~ N(slope * log K + bias, sigma)`` with the camera's Tukey-lambda fit
+  (``G_scale``), or Gaussian with the camera's separate Gaussian fit (``g_scale``);
 - row noise: one ``N(0, sigma_row)`` offset per image row (shared by its columns and colour
   channels, as a banding offset in the read-out electronics would be),
-  ``log sigma_row ~ N(slope * log K + bias, sigma)``;
-- quantisation: ``U(-0.5, 0.5)`` (one DN step).
+  ``log sigma_row ~ N(slope * log K + bias, sigma)`` (``R_scale``);
+- quantisation: ``U(-0.5, 0.5)`` (one DN step);
+- optional per-channel black-level offset ``b_c`` (``color_bias``), off by default.
 
-The camera profiles are the published ELD calibrations (METHODS.md section 4). The white
-level minus black level (``saturation``) is the usual 14-bit range of each body; it only sets
-the raw scale at which a [0, 1] linear image is expressed (``x = I * saturation / ratio``).
+The camera tables are ELD's released calibrations (``sparsetools/data/eld_cameras.json``, MIT,
+Wei et al. CVPR 2020; METHODS.md section 4). Each table holds a discrete list of fitted
+Tukey-lambda shapes and, row for row, colour-bias offsets; a draw picks one row uniformly.
+``saturation`` (white minus black level) only sets the raw scale at which a [0, 1] linear
+image is expressed (``x = I * saturation / ratio``).
+
+Tables reach this module two ways: the package's own file, read once by
+:func:`_builtin_profiles` (the only file this module opens), or a :class:`CameraProfile`
+passed as ``camera=`` (for instance from :func:`sparsetools.io.camera_tables.read_camera_tables`).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass
+from types import MappingProxyType
 
 import numpy as np
 
-from ..errors import ParameterError
+from ..errors import FormatError, ParameterError
 
 __all__ = [
     "CAMERA_PROFILES",
     "CameraProfile",
     "NoiseParams",
     "add_sensor_noise",
+    "camera_profile",
     "noise_variance",
     "sample_noise_params",
 ]
@@ -45,15 +56,21 @@ class CameraProfile:
     ----------
     name : str
     gain_range : (float, float)
-        System gain ``K`` range (DN per electron), sampled log-uniformly.
+        System gain ``K`` range (DN per electron), sampled log-uniformly (``Kmin``, ``Kmax``).
     read_slope, read_bias, read_sigma : float
-        ``log sigma_read ~ N(read_slope * log K + read_bias, read_sigma)`` (Tukey-lambda scale).
+        ``log sigma_read ~ N(read_slope * log K + read_bias, read_sigma)``, Tukey-lambda
+        scale (ELD ``G_scale``).
+    gaussian_slope, gaussian_bias, gaussian_sigma : float
+        The same for the Gaussian read-noise model (ELD ``g_scale``, a separate fit).
     row_slope, row_bias, row_sigma : float
-        ``log sigma_row ~ N(row_slope * log K + row_bias, row_sigma)``.
-    lambda_range : (float, float)
-        Tukey-lambda shape range, sampled uniformly.
+        ``log sigma_row ~ N(row_slope * log K + row_bias, row_sigma)`` (ELD ``R_scale``).
+    tukey_lambdas : tuple of float
+        The fitted Tukey-lambda shapes (ELD ``G_shape``), one per calibration row.
+    color_bias : tuple of (float, float, float, float)
+        Black-level offsets in DN per row, ELD's packed raw order (R, G1, B, G2); as many rows
+        as ``tukey_lambdas``.
     saturation : float
-        White level minus black level, DN (14-bit raw).
+        White level minus black level, DN.
     """
 
     name: str
@@ -61,25 +78,76 @@ class CameraProfile:
     read_slope: float
     read_bias: float
     read_sigma: float
+    gaussian_slope: float
+    gaussian_bias: float
+    gaussian_sigma: float
     row_slope: float
     row_bias: float
     row_sigma: float
-    lambda_range: tuple[float, float]
+    tukey_lambdas: tuple[float, ...]
+    color_bias: tuple[tuple[float, float, float, float], ...]
     saturation: float
 
+    @property
+    def lambda_range(self) -> tuple[float, float]:
+        """Smallest and largest fitted Tukey-lambda shape."""
+        return (min(self.tukey_lambdas), max(self.tukey_lambdas))
 
-#: Published ELD profiles (K range; TL slope, bias, sigma; row slope, bias, sigma; lambda).
-CAMERA_PROFILES: dict[str, CameraProfile] = {
-    p.name: p
-    for p in (
-        CameraProfile("SonyA7S2", (0.0939, 6.011), 0.4621, 0.5657, 0.2634,
-                      0.5275, -0.5917, 0.2943, (-0.143, 0.129), 16383.0 - 512.0),
-        CameraProfile("NikonD850", (0.415, 26.56), 0.4774, -0.0904, 0.2392,
-                      0.4483, -1.7977, 0.2322, (-0.243, -0.100), 16383.0 - 600.0),
-        CameraProfile("CanonEOS70D", (0.407, 26.08), 0.4868, 1.4643, 0.3820,
-                      0.7292, -0.9371, 0.2502, (-0.171, 0.143), 15000.0 - 2048.0),
-    )
-}  # fmt: skip
+    def rgb_bias(self, row: int) -> tuple[float, float, float]:
+        """Colour-bias offsets of one calibration row for an RGB image, DN.
+
+        R and B are taken as they are; G is the mean of the two green sites.
+        """
+        r, g1, b, g2 = self.color_bias[row]
+        return (float(r), 0.5 * (float(g1) + float(g2)), float(b))
+
+    @classmethod
+    def from_dict(cls, name: str, entry: Mapping, *, profile: str = "Profile-1") -> CameraProfile:
+        """Profile from one camera entry of an ELD table (``Kmin``, ``Kmax``, ``G_shape``,
+        ``color_bias``, ``Profile-1`` with ``G_scale`` / ``g_scale`` / ``R_scale``,
+        ``saturation_dn``).
+
+        Raises
+        ------
+        FormatError
+            A key is missing, a value is not a finite number, or the row counts differ.
+        """
+        try:
+            fits = entry[profile]
+            tl, ga, row = fits["G_scale"], fits["g_scale"], fits["R_scale"]
+            shapes = tuple(float(v) for v in entry["G_shape"])
+            bias = tuple(tuple(float(v) for v in r) for r in entry["color_bias"])
+            numbers = (float(entry["Kmin"]), float(entry["Kmax"]),
+                       *(float(f[k]) for f in (tl, ga, row) for k in ("slope", "bias", "sigma")),
+                       float(entry["saturation_dn"]))  # fmt: skip
+        except (KeyError, TypeError, ValueError) as exc:
+            raise FormatError(f"camera table '{name}': missing or bad value ({exc!r})") from exc
+        if not all(math.isfinite(v) for v in (*numbers, *shapes, *sum(bias, ()))):
+            raise FormatError(f"camera table '{name}': non-finite value")
+        if not shapes or len(bias) != len(shapes) or any(len(r) != 4 for r in bias):
+            raise FormatError(
+                f"camera table '{name}': need as many color_bias rows of 4 (R, G1, B, G2) as "
+                f"G_shape values, got {len(bias)} rows for {len(shapes)} shapes"
+            )
+        k_min, k_max, *scales, saturation = numbers
+        if not (0 < k_min <= k_max) or not saturation > 0:
+            raise FormatError(f"camera table '{name}': need 0 < Kmin <= Kmax and saturation > 0")
+        return cls(name, (k_min, k_max), *scales[:3], *scales[3:6], *scales[6:9],
+                   shapes, bias, saturation)  # fmt: skip
+
+
+def _builtin_profiles() -> Mapping[str, CameraProfile]:
+    """The ELD tables shipped with the package (:mod:`.eld_tables`, the values of
+    ``sparsetools/data/eld_cameras.json``)."""
+    from .eld_tables import ELD_CAMERAS
+
+    cams = ELD_CAMERAS
+    return MappingProxyType({n: CameraProfile.from_dict(n, cams[n]) for n in sorted(cams)})
+
+
+#: ELD's released camera tables (read-only), by name: CanonEOS5D4, CanonEOS700D, CanonEOS70D,
+#: NikonD850, SonyA7S2.
+CAMERA_PROFILES: Mapping[str, CameraProfile] = _builtin_profiles()
 
 NOISE_MODELS = ("eld", "gaussian", "none")
 
@@ -105,6 +173,12 @@ class NoiseParams:
         Scales in DN.
     seed : int
         Seed of the generator that draws the noise itself.
+    color_bias : (float, float, float)
+        Black-level offset added to the R, G, B channels, DN (zeros unless asked for; a 2-D
+        image gets their mean).
+    table_row : int
+        Calibration row of the camera table that gave ``tukey_lambda`` (and ``color_bias``);
+        -1 in records made before the tables were used (lambda then drawn uniformly).
     """
 
     model: str
@@ -116,12 +190,25 @@ class NoiseParams:
     sigma_read: float
     sigma_row: float
     seed: int
+    color_bias: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    table_row: int = -1
+
+    def __post_init__(self) -> None:
+        # A list (e.g. from NoiseParams(**d)) would make the record unhashable and unequal.
+        object.__setattr__(self, "color_bias", tuple(float(v) for v in self.color_bias))
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        d = asdict(self)
+        d["color_bias"] = list(self.color_bias)
+        return d
 
     @classmethod
     def from_dict(cls, d: dict) -> NoiseParams:
+        """Parse :meth:`to_dict` output; records without ``color_bias`` / ``table_row``
+        (written before they existed) get no bias and row -1, and replay as before."""
+        bias = tuple(float(v) for v in d.get("color_bias", (0.0, 0.0, 0.0)))
+        if len(bias) != 3:
+            raise ParameterError(f"noise color_bias must hold 3 values (R, G, B), got {bias}")
         return cls(
             model=str(d["model"]),
             camera=str(d["camera"]),
@@ -132,6 +219,8 @@ class NoiseParams:
             sigma_read=float(d["sigma_read"]),
             sigma_row=float(d["sigma_row"]),
             seed=int(d["seed"]),
+            color_bias=bias,
+            table_row=int(d.get("table_row", -1)),
         )
 
 
@@ -148,55 +237,71 @@ def camera_profile(name: str) -> CameraProfile:
 def sample_noise_params(
     rng: np.random.Generator,
     *,
-    camera: str = "SonyA7S2",
+    camera: str | CameraProfile = "SonyA7S2",
     model: str = "eld",
     ratio_range: tuple[float, float] = (1.0, 8.0),
+    color_bias: bool = False,
 ) -> NoiseParams:
-    """Draw one set of noise parameters from a camera profile.
+    """Draw one set of noise parameters from a camera table.
 
     Parameters
     ----------
     rng : numpy.random.Generator
-    camera : str
-        A key of :data:`CAMERA_PROFILES`, or ``"random"`` to pick one uniformly.
+    camera : str or CameraProfile
+        A key of :data:`CAMERA_PROFILES`, ``"random"`` to pick one of them uniformly, or a
+        profile of one's own (e.g. read by :func:`sparsetools.io.camera_tables.read_camera_tables`).
     model : {"eld", "gaussian", "none"}
+        "eld": Tukey-lambda read noise with the ``G_scale`` fit; "gaussian": Gaussian read
+        noise with the ``g_scale`` fit.
     ratio_range : (float, float)
         Exposure ratio range, sampled log-uniformly; >= 1 darkens the raw signal and so
         raises the relative noise (ELD uses 100-300 for extreme low light).
+    color_bias : bool
+        Add the drawn calibration row's black-level offsets (``NoiseParams.color_bias``).
 
     Returns
     -------
     NoiseParams
-        The draw order is fixed (camera, K, lambda, sigma_read, sigma_row, ratio, seed), so a
-        given generator state always gives the same parameters.
+        The draw order is fixed (camera, K, table row, sigma_read, sigma_row, ratio, seed)
+        and does not depend on ``model`` or ``color_bias``, so switching them leaves the other
+        values unchanged. The row picks ``tukey_lambda`` from the table's discrete shapes.
     """
     if model not in NOISE_MODELS:
         raise ParameterError(f"unknown noise model '{model}' (choose {', '.join(NOISE_MODELS)})")
     lo, hi = ratio_range
     if not (0 < lo <= hi) or not math.isfinite(hi):
         raise ParameterError(f"ratio range must satisfy 0 < low <= high, got {ratio_range}")
-    if camera == "random":
-        names = sorted(CAMERA_PROFILES)
-        camera = names[int(rng.integers(len(names)))]
-    prof = camera_profile(camera)
+    if isinstance(camera, CameraProfile):
+        prof = camera
+    else:
+        if camera == "random":
+            names = sorted(CAMERA_PROFILES)
+            camera = names[int(rng.integers(len(names)))]
+        prof = camera_profile(camera)
     log_k = rng.uniform(math.log(prof.gain_range[0]), math.log(prof.gain_range[1]))
-    lam = rng.uniform(*prof.lambda_range)
-    log_read = rng.normal(prof.read_slope * log_k + prof.read_bias, prof.read_sigma)
+    row = int(rng.integers(len(prof.tukey_lambdas)))
+    if model == "gaussian":
+        slope, bias, sigma = prof.gaussian_slope, prof.gaussian_bias, prof.gaussian_sigma
+    else:
+        slope, bias, sigma = prof.read_slope, prof.read_bias, prof.read_sigma
+    log_read = rng.normal(slope * log_k + bias, sigma)
     log_row = rng.normal(prof.row_slope * log_k + prof.row_bias, prof.row_sigma)
     ratio = math.exp(rng.uniform(math.log(lo), math.log(hi)))
     seed = int(rng.integers(0, 2**63 - 1))
     if model == "none":
-        return NoiseParams("none", camera, 1.0, 1.0, prof.saturation, 0.0, 0.0, 0.0, seed)
+        return NoiseParams("none", prof.name, 1.0, 1.0, prof.saturation, 0.0, 0.0, 0.0, seed)
     return NoiseParams(
         model=model,
-        camera=camera,
+        camera=prof.name,
         system_gain=float(math.exp(log_k)),
         ratio=float(ratio),
         saturation=prof.saturation,
-        tukey_lambda=float(lam),
+        tukey_lambda=prof.tukey_lambdas[row],
         sigma_read=float(math.exp(log_read)),
         sigma_row=float(math.exp(log_row)),
         seed=seed,
+        color_bias=prof.rgb_bias(row) if color_bias else (0.0, 0.0, 0.0),
+        table_row=row,
     )
 
 
@@ -215,6 +320,8 @@ def _check_params(params: NoiseParams) -> None:
         v = getattr(params, name)
         if not (math.isfinite(v) and v >= 0):
             raise ParameterError(f"noise {name} must be finite and >= 0, got {v}")
+    if len(params.color_bias) != 3 or not all(math.isfinite(v) for v in params.color_bias):
+        raise ParameterError(f"noise color_bias must be 3 finite values, got {params.color_bias}")
     if params.model == "eld" and not (-0.5 < params.tukey_lambda < 1.0):
         # Outside (-1/2, 1) the read-noise variance is infinite or the support is tiny.
         raise ParameterError(f"Tukey lambda must be in (-0.5, 1), got {params.tukey_lambda}")
@@ -229,7 +336,8 @@ def add_sensor_noise(raw: np.ndarray, params: NoiseParams) -> np.ndarray:
         Clean signal (expected value of each pixel).
     params : NoiseParams
         The noise itself is drawn from ``numpy.random.default_rng(params.seed)`` in a fixed
-        order (shot, read, row, quantisation): the same parameters give the same noise.
+        order (shot, read, row, quantisation): the same parameters give the same noise. A
+        non-zero ``color_bias`` is added last: per channel to (H, W, 3), its mean otherwise.
 
     Returns
     -------
@@ -260,6 +368,12 @@ def add_sensor_noise(raw: np.ndarray, params: NoiseParams) -> np.ndarray:
     row = stats.norm.rvs(scale=params.sigma_row, size=x.shape[0], random_state=gen)
     z += row.reshape((-1,) + (1,) * (x.ndim - 1))
     z += stats.uniform.rvs(loc=-0.5, scale=1.0, size=x.shape, random_state=gen)
+    if any(params.color_bias):
+        # Added after the draws, so the noise itself is the same with or without the offsets.
+        if x.ndim == 3 and x.shape[2] == 3:
+            z += np.asarray(params.color_bias, dtype=np.float64)
+        else:
+            z += float(np.mean(params.color_bias))
     return z
 
 
@@ -267,7 +381,8 @@ def noise_variance(signal: np.ndarray | float, params: NoiseParams) -> np.ndarra
     """Predicted per-pixel noise variance (DN^2) at a clean signal level (DN).
 
     ``K * x`` (shot) + read variance (Tukey-lambda or Gaussian) + ``sigma_row^2`` + 1/12.
-    Useful to check a simulation or to weight a denoising loss.
+    Useful to check a simulation or to weight a denoising loss. The colour bias shifts the
+    mean, not the variance.
     """
     _check_params(params)
     x = np.asarray(signal, dtype=np.float64)
