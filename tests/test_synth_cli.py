@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 from click.testing import CliRunner
 
 from sparsetools.cli.main import cli
@@ -46,3 +48,41 @@ def test_stem_prefix_names_files_and_survives_check(tmp_path):
     assert r.exit_code == 0, r.output
     r = runner.invoke(cli, ["synth-scene", str(tmp_path / "c"), *SMALL, "--stem-prefix", "../x"])
     assert r.exit_code == 1 and "stem prefix" in r.stderr
+
+
+VIDEO = ["--video", "--sequences", "2", "--frames", "2", "--image-size", "64x24", "--seed", "1"]
+
+
+def test_video_mode_writes_sequences_and_check_reproduces_them(tmp_path):
+    runner = CliRunner()
+    r = runner.invoke(cli, ["synth-scene", str(tmp_path / "v"), *VIDEO, "--json"])
+    assert r.exit_code == 0, r.output
+    summary = json.loads(r.stdout)
+    assert summary["sequences"] == ["seq_0000", "seq_0001"] and summary["frames"] == 2
+    for seq in ("seq_0000", "seq_0001"):
+        root = tmp_path / "v" / seq
+        assert sorted(p.name for p in (root / "image_2").iterdir()) == [
+            "0000000000.png",
+            "0000000001.png",
+        ]
+        assert len((root / "poses.txt").read_text().splitlines()) == 2
+        assert (root / "moving_mask" / "0000000001.png").is_file()
+    # No single-frame outputs in video mode.
+    assert not (tmp_path / "v" / "underwater").exists() and not (tmp_path / "v" / "radar").exists()
+    r = runner.invoke(cli, ["synth-scene", str(tmp_path / "w"), "--check", str(tmp_path / "v")])
+    assert r.exit_code == 0, r.output
+    assert "different  0" in r.output
+    (tmp_path / "v" / "seq_0001" / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n")
+    r = runner.invoke(cli, ["synth-scene", str(tmp_path / "x"), "--check", str(tmp_path / "v")])
+    assert r.exit_code == 1 and "seq_0001/poses.txt" in r.stderr
+
+
+def test_video_options_need_video_mode_and_vice_versa(tmp_path):
+    runner = CliRunner()
+    r = runner.invoke(cli, ["synth-scene", str(tmp_path / "a"), "--sequences", "2"])
+    assert r.exit_code == 2 and "--sequences" in r.stderr and "without --video" in r.stderr
+    r = runner.invoke(cli, ["synth-scene", str(tmp_path / "a"), "--video", "--stem-prefix", "s_"])
+    assert r.exit_code == 2 and "--stem-prefix" in r.stderr
+    r = runner.invoke(cli, ["synth-scene", str(tmp_path / "a"), "--video", "--antialias", "9"])
+    assert r.exit_code == 2
+    assert not (tmp_path / "a").exists()

@@ -5,8 +5,14 @@ from __future__ import annotations
 from pathlib import Path
 
 import click
+from click.core import ParameterSource
 
-from .options import emit_summary, size_wxh
+from .options import emit_summary, json_option, size_wxh
+
+#: Defaults of --frames and --image-size in video mode (when not given).
+VIDEO_FRAMES, VIDEO_SIZE = 30, (416, 128)
+_VIDEO_ONLY = ("sequences", "static", "antialias", "image_noise", "workers")
+_SINGLE_ONLY = ("underwater_frames", "stem_prefix")
 
 
 @click.command("synth-scene")
@@ -17,7 +23,8 @@ from .options import emit_summary, size_wxh
     type=click.IntRange(min=1),
     default=3,
     show_default=True,
-    help="Street frames (one sequence; the ego drives ~1 m per frame).",
+    help="Street frames (one sequence; the ego drives ~1 m per frame). Video mode: frames "
+    "per sequence at 10 Hz (default 30).",
 )
 @click.option(
     "--image-size",
@@ -25,7 +32,7 @@ from .options import emit_summary, size_wxh
     default="1242x375",
     show_default=True,
     metavar="WxH",
-    help="Camera resolution (intrinsics scale with it).",
+    help="Camera resolution (intrinsics scale with it). Video mode default 416x128.",
 )
 @click.option(
     "--underwater-frames",
@@ -41,6 +48,42 @@ from .options import emit_summary, size_wxh
     help="Prefix of the frame file names (s1_ gives s1_000000.png): lets several "
     "sequences share one dataset without name clashes.",
 )
+@click.option(
+    "--video",
+    is_flag=True,
+    help="Video mode: --sequences street videos with exact camera/LiDAR poses, moving "
+    "cars and people, a moving-object mask (docs/synth-scene.md).",
+)
+@click.option(
+    "--sequences",
+    type=click.IntRange(min=1),
+    default=1,
+    show_default=True,
+    help="Video mode: sequences, each its own street and drive (seq_0000, ...).",
+)
+@click.option("--static", is_flag=True, help="Video mode: no moving cars, nobody walks.")
+@click.option(
+    "--antialias",
+    type=click.IntRange(1, 4),
+    default=2,
+    show_default=True,
+    help="Video mode: colour samples per pixel along each axis.",
+)
+@click.option(
+    "--image-noise",
+    type=click.FloatRange(min=0.0),
+    default=0.0,
+    show_default=True,
+    metavar="SIGMA",
+    help="Video mode: Gaussian image noise, grey levels.",
+)
+@click.option(
+    "--workers",
+    type=click.IntRange(min=1),
+    default=1,
+    show_default=True,
+    help="Video mode: frames simulated in parallel (same bytes for any number).",
+)
 @click.option("--overwrite", is_flag=True, help="Replace existing files in OUT_DIR.")
 @click.option(
     "--check",
@@ -49,9 +92,23 @@ from .options import emit_summary, size_wxh
     help="Regenerate the scene in CHECK (a synth-scene folder) from its scene.json into "
     "OUT_DIR and compare every file byte for byte (exit 1 on any difference).",
 )
-@click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
+@json_option
 def synth_scene(
-    out_dir, seed, frames, image_size, underwater_frames, stem_prefix, overwrite, check_dir, as_json
+    out_dir,
+    seed,
+    frames,
+    image_size,
+    underwater_frames,
+    stem_prefix,
+    video,
+    sequences,
+    static,
+    antialias,
+    image_noise,
+    workers,
+    overwrite,
+    check_dir,
+    as_json,
 ):
     """Generate a synthetic KITTI-like street scene with exact ground truth.
 
@@ -60,13 +117,33 @@ def synth_scene(
     ground-truth depth (depth_gt/), 5 nuScenes-format radar sweeps (radar/, calib_radar/);
     plus an underwater sequence (underwater/). Same seed, same bytes.
 
+    With --video: street videos at 10 Hz, one folder per sequence (image_2/, velodyne/,
+    depth_gt/, moving_mask/, calib/, poses.txt, poses_velodyne.txt, poses/, times.txt,
+    scene.json).
+
     \b
     Example:
       sparsetools synth-scene out/scene --seed 0 --frames 3
       sparsetools synth-scene out/small --frames 200 --image-size 320x96 --underwater-frames 0
       sparsetools synth-scene out/check --check sample_data/synthetic   # reproducible?
+      sparsetools synth-scene out/video --video --sequences 4 --frames 30 --image-size 416x128
     """
     from ..synth import generate_scene
+
+    ctx = click.get_current_context()
+
+    def given(name: str) -> bool:
+        return ctx.get_parameter_source(name) not in (ParameterSource.DEFAULT, None)
+
+    if video:
+        wrong = [n for n in _SINGLE_ONLY if given(n)]
+    else:
+        wrong = [n for n in _VIDEO_ONLY if given(n)]
+    if wrong:
+        flag = "--" + wrong[0].replace("_", "-")
+        raise click.UsageError(
+            f"{flag} does not apply {'to --video' if video else 'without --video'}"
+        )
 
     if check_dir is not None:
         from ..errors import FormatError
@@ -87,6 +164,25 @@ def synth_scene(
                 f"{len(bad)} file(s) differ from {check_dir} (first: {bad[0]}): the generator "
                 "changed, regenerate with `make sample-data`"
             )
+        return
+
+    if video:
+        from ..synth.video_files import write_video
+
+        summary = write_video(
+            out_dir,
+            seed=seed,
+            sequences=sequences,
+            n_frames=frames if given("frames") else VIDEO_FRAMES,
+            image_size=image_size if given("image_size") else VIDEO_SIZE,
+            static=static,
+            antialias=antialias,
+            image_noise=image_noise,
+            workers=workers,
+            overwrite=overwrite,
+        )
+        del summary["lidar_points"]  # per frame: too long for the terminal summary
+        emit_summary(summary, as_json=as_json, title=f"synthetic videos written to {out_dir}")
         return
 
     width, height = image_size

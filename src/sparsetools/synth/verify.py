@@ -41,10 +41,13 @@ def compare_trees(reference: str | os.PathLike, candidate: str | os.PathLike) ->
 
 def regenerate_and_compare(reference: str | os.PathLike, out_dir: str | os.PathLike) -> dict:
     """Regenerate ``reference`` (a ``synth-scene`` folder) into ``out_dir`` from its
-    ``scene.json`` parameters and compare the two byte for byte."""
+    ``scene.json`` parameters (``video.json`` for a ``--video`` folder) and compare the two
+    byte for byte."""
     from .scene import generate_scene
 
     ref = Path(reference)
+    if (ref / "video.json").is_file():
+        return _regenerate_video(ref, out_dir)
     try:
         meta = json.loads((ref / "scene.json").read_text(encoding="utf-8"))
         seed, frames = int(meta["seed"]), int(meta["frames"])
@@ -70,4 +73,27 @@ def regenerate_and_compare(reference: str | os.PathLike, out_dir: str | os.PathL
         overwrite=True,
         stem_prefix=str(meta.get("stem_prefix", "")),
     )
+    return compare_trees(ref, out_dir)
+
+
+def _regenerate_video(ref: Path, out_dir: str | os.PathLike) -> dict:
+    """Regenerate a ``synth-scene --video`` folder from its ``video.json`` and compare."""
+    from .video_files import write_video
+
+    try:
+        meta = json.loads((ref / "video.json").read_text(encoding="utf-8"))
+        options = dict(
+            seed=int(meta["seed"]),
+            sequences=int(meta["sequences"]),
+            n_frames=int(meta["frames"]),
+            image_size=tuple(int(v) for v in meta["image_size"]),
+            static=bool(meta["static"]),
+            antialias=int(meta["antialias"]),
+            image_noise=float(meta["image_noise_sigma"]),
+        )
+    except (KeyError, ValueError, TypeError, json.JSONDecodeError) as exc:
+        raise FormatError(
+            f"{ref}/video.json: missing or invalid generation parameters ({exc})"
+        ) from exc
+    write_video(out_dir, overwrite=True, **options)
     return compare_trees(ref, out_dir)
