@@ -198,7 +198,7 @@ def nearest_fill_reference(ds: Path) -> dict:
     """Test metrics of the LiDAR alone, holes filled with the nearest measured pixel."""
     from scipy import ndimage
 
-    from sparsetools.io.dataset import DatasetReader
+    from sparsetools.io.dataset_reader import DatasetReader
     from sparsetools.ops.metrics import aggregate_metrics, depth_metrics
 
     test = DatasetReader(ds).split("test")
@@ -259,19 +259,15 @@ def docs_pictures(run: Path, dataset: Path, img: Path) -> None:
     """Curves of ``run`` and its predictions on two test frames (docs/img/train_*.png)."""
     import torch
 
-    from sparsetools.io.dataset import DatasetReader
-    from sparsetools.train.loop import (
-        _model_from_checkpoint,
-        draw_curves,
-        load_checkpoint,
-        prediction_picture,
-    )
+    from sparsetools.io.dataset_reader import DatasetReader
+    from sparsetools.train.checkpoint import load_checkpoint, model_from_checkpoint
     from sparsetools.train.model import model_inputs
+    from sparsetools.train.plots import draw_curves, prediction_picture
 
     with open(run / "metrics.csv") as f:
         history = [{k: float(v) for k, v in r.items()} for r in csv.DictReader(f)]
     _write_png(img / "train_curves.png", draw_curves(history, loss_name="l1"))
-    model = _model_from_checkpoint(load_checkpoint(run / "best.pt")).eval()
+    model = model_from_checkpoint(load_checkpoint(run / "best.pt")).eval()
     test = DatasetReader(dataset).split("test")
     rows = []
     for i in (0, len(test) // 2):
@@ -289,9 +285,9 @@ def compare_picture(results: list[dict], datasets: dict[int, Path], out: Path) -
     import cv2
     import torch
 
-    from sparsetools.io.dataset import DatasetReader
+    from sparsetools.io.dataset_reader import DatasetReader
     from sparsetools.ops.colormap import colorize_depth, side_by_side
-    from sparsetools.train.loop import _model_from_checkpoint, load_checkpoint
+    from sparsetools.train.checkpoint import load_checkpoint, model_from_checkpoint
     from sparsetools.train.model import model_inputs
 
     test = DatasetReader(datasets[16]).split("test")
@@ -303,7 +299,7 @@ def compare_picture(results: list[dict], datasets: dict[int, Path], out: Path) -
         for r in results:
             ds_n = int(r["dataset"].split("_")[1].replace("beams", ""))
             s = DatasetReader(datasets[ds_n]).sample(sid)
-            model = _model_from_checkpoint(load_checkpoint(Path(r["run"]) / "best.pt")).eval()
+            model = model_from_checkpoint(load_checkpoint(Path(r["run"]) / "best.pt")).eval()
             rgb = torch.from_numpy(s["rgb"].transpose(2, 0, 1).copy()).float()[None] / 255
             sparse = torch.from_numpy(s["sparse"])[None, None]
             with torch.no_grad():

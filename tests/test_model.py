@@ -11,6 +11,7 @@ from sparsetools.train.model import (  # noqa: E402
     INPUT_CHANNELS,
     DepthCompletionUNet,
     build_model,
+    disparity_to_depth,
     model_inputs,
 )
 
@@ -148,3 +149,55 @@ def test_final_layer_inputs_per_mode():
     assert DepthCompletionUNet("rgb", width=4, final_layer=True).adjust.in_channels == 1 + 3
     assert DepthCompletionUNet("rgbd", width=4, final_layer=True).adjust.in_channels == 1 + 4 + 2
     assert DepthCompletionUNet("rgbdm", width=4, final_layer=True).adjust.in_channels == 1 + 5 + 2
+
+
+# -- self-supervised (multi-scale disparity) output ----------------------------------------------
+@pytest.mark.parametrize("size", [(32, 48), (37, 51)])
+def test_disparity_output_four_scales(size):
+    torch.manual_seed(0)
+    model = DepthCompletionUNet("rgbd", width=4, output="disparity").eval()
+    with torch.no_grad():
+        x = torch.rand(2, 4, *size)
+        out = model(x)
+        depth = model.predict_depth(x)
+    h, w = size
+    assert [tuple(d.shape) for d in out] == [
+        (2, 1, -(-h // 2**s), -(-w // 2**s)) for s in range(4)
+    ]  # finest first, ceil(size / 2^s)
+    assert all(((d > 0) & (d < 1)).all() for d in out)  # sigmoid
+    assert depth.shape == (2, 1, h, w)
+    torch.testing.assert_close(depth, disparity_to_depth(out[0], 0.1, 100.0))
+    assert (depth >= 0.1).all() and (depth <= 100.0).all()
+
+
+def test_disparity_to_depth_formula():
+    sigma = torch.tensor([0.0, 1.0, 0.5, 0.25], dtype=torch.float64)
+    d = disparity_to_depth(sigma, 0.1, 100.0)
+    expected = [
+        1 / (0.01 + (10 - 0.01) * s) for s in sigma.tolist()
+    ]  # 1 / (1/max + (1/min - 1/max) s)
+    torch.testing.assert_close(d, torch.tensor(expected, dtype=torch.float64))
+    assert float(d[0]) == pytest.approx(100.0) and float(d[1]) == pytest.approx(0.1)
+
+
+def test_disparity_initial_depth_and_config():
+    model = DepthCompletionUNet("rgb", width=4, output="disparity", initial_depth=10.0).eval()
+    with torch.no_grad():
+        depth = model.predict_depth(torch.rand(1, 3, 16, 32))
+    torch.testing.assert_close(depth, torch.full_like(depth, 10.0), rtol=1e-4, atol=0)
+    clone = build_model(model.config())
+    assert clone.output == "disparity" and clone.depth_range == (0.1, 100.0)
+    assert clone.initial_depth == 10.0
+    assert set(clone.state_dict()) == set(model.state_dict())
+    # supervised models keep their three configuration keys (old checkpoints load unchanged)
+    assert DepthCompletionUNet("rgb", width=4).config() == {
+        "input_mode": "rgb",
+        "width": 4,
+        "final_layer": False,
+    }
+    with pytest.raises(ParameterError, match="final"):
+        DepthCompletionUNet("rgb", output="disparity", final_layer=True)
+    with pytest.raises(ParameterError):
+        DepthCompletionUNet("rgb", output="logits")
+    with pytest.raises(ParameterError, match="depth_range"):
+        DepthCompletionUNet("rgb", output="disparity", depth_range=(5.0, 1.0))

@@ -14,23 +14,21 @@ torch = pytest.importorskip("torch")
 from sparsetools.errors import FormatError, OutputError, ParameterError  # noqa: E402
 from sparsetools.io.image import read_image, write_depth_png, write_image  # noqa: E402
 from sparsetools.ops.metrics import METRIC_NAMES, depth_metrics  # noqa: E402
+from sparsetools.train.checkpoint import load_checkpoint  # noqa: E402
+from sparsetools.train.config import TrainConfig, epoch_lr  # noqa: E402
 from sparsetools.train.data import (  # noqa: E402
     DepthDataset,
     augment_sample,
     bottom_centre_crop,
     collate_samples,
 )
-from sparsetools.train.loop import (  # noqa: E402
-    TrainConfig,
-    draw_curves,
-    epoch_lr,
+from sparsetools.train.evaluate import (  # noqa: E402
     evaluate_checkpoint,
     evaluate_folders,
-    load_checkpoint,
-    prediction_picture,
-    train,
     write_eval_results,
 )
+from sparsetools.train.loop import train  # noqa: E402
+from sparsetools.train.plots import draw_curves, prediction_picture  # noqa: E402
 
 TIMING = {"seconds", "samples_per_s"}
 
@@ -42,6 +40,7 @@ def make_dataset(
 
     ``sizes`` maps a sequence number to its own (h, w) to make mixed-size datasets.
     """
+    from sparsetools.pipeline.batch import Batch
     from sparsetools.pipeline.dataset import build_dataset
 
     rng = np.random.default_rng(seed)
@@ -69,7 +68,7 @@ def make_dataset(
         sparse=inputs / "sparse",
         gt=(inputs / "gt") if gt else None,
         split=split or {"train": 0.6, "val": 0.2, "test": 0.2},
-        progress=False,
+        batch=Batch(progress=False),
     )
     return out
 
@@ -109,10 +108,10 @@ def test_same_seed_same_metrics_and_weights(dataset, tmp_path):
     s2 = train(config(dataset, tmp_path / "b"))
     rows = read_rows(tmp_path / "a")
     assert len(rows) == 2 and rows == read_rows(tmp_path / "b")
-    assert s1["best_rmse"] == s2["best_rmse"]
+    assert s1.best_metric == "rmse" and s1.best_value == s2.best_value
     assert state_equal(
-        load_checkpoint(tmp_path / "a" / "last.pt")["model"],
-        load_checkpoint(tmp_path / "b" / "last.pt")["model"],
+        load_checkpoint(tmp_path / "a" / "last.pt").model,
+        load_checkpoint(tmp_path / "b" / "last.pt").model,
     )
     # another seed gives another model
     train(config(dataset, tmp_path / "c", seed=1))
@@ -127,10 +126,10 @@ def test_resume_is_exact(dataset, tmp_path):
     assert read_rows(tmp_path / "half") == read_rows(tmp_path / "full")
     full = load_checkpoint(tmp_path / "full" / "last.pt")
     half = load_checkpoint(tmp_path / "half" / "last.pt")
-    assert state_equal(full["model"], half["model"])
-    assert full["step"] == half["step"] == 6
+    assert state_equal(full.model, half.model)
+    assert full.state.step == half.state.step == 6
     # optimizer moments too
-    ma, mb = full["optimizer"]["state"], half["optimizer"]["state"]
+    ma, mb = full.optimizer["state"], half.optimizer["state"]
     assert all(torch.equal(ma[k]["exp_avg_sq"], mb[k]["exp_avg_sq"]) for k in ma)
 
 
@@ -138,14 +137,14 @@ def test_resume_mid_epoch_after_max_steps(dataset, tmp_path):
     # 12 training samples / batch 4 = 3 steps per epoch; stop after 2 steps, then resume
     train(config(dataset, tmp_path / "full", epochs=2))
     partial = train(config(dataset, tmp_path / "cut", epochs=2, max_steps=2))
-    assert partial["steps"] == 2 and partial["epochs_done"] == 0
+    assert partial.steps == 2 and partial.epochs_done == 0
     rows = read_rows(tmp_path / "cut")
     assert len(rows) == 1 and rows[0]["complete"] == "0" and rows[0]["batches"] == "2"
     train(config(dataset, tmp_path / "cut", epochs=2), resume=True)
     assert read_rows(tmp_path / "cut") == read_rows(tmp_path / "full")
     assert state_equal(
-        load_checkpoint(tmp_path / "cut" / "last.pt")["model"],
-        load_checkpoint(tmp_path / "full" / "last.pt")["model"],
+        load_checkpoint(tmp_path / "cut" / "last.pt").model,
+        load_checkpoint(tmp_path / "full" / "last.pt").model,
     )
 
 
@@ -176,11 +175,11 @@ def test_resume_is_exact_with_step_schedule(dataset, tmp_path):
 
 def test_max_steps_caps_total_steps(dataset, tmp_path):
     s = train(config(dataset, tmp_path / "r", epochs=5, max_steps=4))
-    assert s["steps"] == 4
-    assert load_checkpoint(tmp_path / "r" / "last.pt")["step"] == 4
+    assert s.steps == 4
+    assert load_checkpoint(tmp_path / "r" / "last.pt").state.step == 4
     # resuming a finished run does nothing more
     again = train(config(dataset, tmp_path / "r", epochs=5, max_steps=4), resume=True)
-    assert again["steps"] == 4
+    assert again.steps == 4
 
 
 @pytest.mark.slow
@@ -218,11 +217,12 @@ def test_run_folder_contents(dataset, tmp_path):
     for k in ("epoch", "train_loss", "val_loss", *METRIC_NAMES):
         assert k in rows[0]
     ckpt = load_checkpoint(run / "best.pt")
-    assert ckpt["model_config"] == {"input_mode": "rgbdm", "width": 4, "final_layer": True}
-    assert ckpt["best_metric"]["name"] == "rmse"
-    assert ckpt["best_metric"]["value"] == pytest.approx(min(float(r["rmse"]) for r in rows))
-    assert summary["best_epoch"] == ckpt["best_metric"]["epoch"]
-    assert ckpt["config"]["loss"] == "silog"
+    assert ckpt.model_config == {"input_mode": "rgbdm", "width": 4, "final_layer": True}
+    assert ckpt.kind == "supervised"
+    assert ckpt.state.best.name == "rmse"
+    assert ckpt.state.best.value == pytest.approx(min(float(r["rmse"]) for r in rows))
+    assert summary.best_epoch == ckpt.state.best.epoch
+    assert ckpt.config.loss == "silog"
     curves = read_image(run / "curves.png")
     assert curves.shape[0] > 200 and curves.shape[1] > 600
     pic = read_image(run / "predictions" / "epoch_002.png")
@@ -236,12 +236,13 @@ def test_best_checkpoint_reproduces_validation_metrics(dataset, tmp_path):
     best = min(rows, key=lambda r: float(r["rmse"]))
     res = evaluate_checkpoint(run / "best.pt", dataset, split="val", batch_size=3)
     for k in METRIC_NAMES:
-        assert res["metrics"][k] == pytest.approx(float(best[k]), rel=1e-5), k
+        assert res.metrics[k] == pytest.approx(float(best[k]), rel=1e-5), k
     # a run folder means its best.pt
     again = evaluate_checkpoint(run, dataset, split="val", batch_size=3)
-    assert again["metrics"] == res["metrics"]
+    assert again.metrics == res.metrics
+    assert not res.median_scaling and res.kind == "supervised"
     test_res = evaluate_checkpoint(run / "last.pt", dataset, split="test")
-    assert test_res["metrics"]["n_images"] == 4
+    assert test_res.metrics["n_images"] == 4
     written = write_eval_results(test_res, tmp_path / "out" / "m.json")
     assert [p.name for p in written] == ["m.json", "m.csv"]
     lines = written[1].read_text().splitlines()
@@ -264,10 +265,10 @@ def test_evaluate_folders_matches_depth_metrics(tmp_path):
         per.append(depth_metrics(np.round(pred * 256) / 256, np.round(gt * 256) / 256))
     write_depth_png(tmp_path / "p" / "extra.png", np.ones((10, 12)))
     res = evaluate_folders(tmp_path / "p", tmp_path / "g")
-    assert res["unmatched_predictions"] == 1
-    assert res["metrics"]["n_images"] == 3
+    assert res.unmatched_predictions == 1
+    assert res.metrics["n_images"] == 3
     for k in METRIC_NAMES:
-        assert res["metrics"][k] == pytest.approx(np.mean([m[k] for m in per]), rel=1e-5), k
+        assert res.metrics[k] == pytest.approx(np.mean([m[k] for m in per]), rel=1e-5), k
 
 
 def test_evaluate_folders_bad_input(tmp_path):
@@ -313,7 +314,7 @@ def test_mixed_sizes_need_a_crop(tmp_path):
     with pytest.raises(ParameterError, match="larger than"):
         train(config(ds, tmp_path / "run", val_split="train", crop=(24, 40)))
     s = train(config(ds, tmp_path / "run", val_split="train", crop=(16, 32), epochs=1))
-    assert s["steps"] == 2
+    assert s.steps == 2
     # the collate function refuses mixed sizes itself too
     items = [
         {

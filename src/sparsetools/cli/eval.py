@@ -7,7 +7,14 @@ from pathlib import Path
 
 import click
 
-from .options import progress_enabled
+from .options import (
+    batch_size_option,
+    device_option,
+    json_option,
+    max_depth_option,
+    output_dir_option,
+)
+from .train import progress_wanted
 
 
 @click.command("eval")
@@ -45,23 +52,25 @@ from .options import progress_enabled
     show_default=True,
     help="Ground truth at or below this (m) is not evaluated.",
 )
+@max_depth_option(default=80.0, help="Ground truth at or above this (m) is not evaluated.")
 @click.option(
-    "--max-depth",
-    type=click.FloatRange(min=0, min_open=True),
-    default=80.0,
+    "--scaling",
+    type=click.Choice(["auto", "median", "none"]),
+    default="auto",
     show_default=True,
-    help="Ground truth at or above this (m) is not evaluated.",
+    help="Per-image median scaling of the predictions. auto: median for camera-only "
+    "self-supervised checkpoints (monodepth2's protocol), none for every other model and for "
+    "--pred.",
 )
-@click.option("--device", default="cpu", show_default=True, help="cpu, or cuda when available.")
-@click.option("--batch-size", type=click.IntRange(min=1), default=4, show_default=True)
-@click.option(
-    "-o",
-    "--output",
-    type=click.Path(path_type=Path),
+@device_option
+@batch_size_option(default=4)
+@output_dir_option(
+    required=False,
+    file=True,
     help="Results file (.json or .csv; both are written). Default with --checkpoint: "
     "eval_<split>.json/.csv next to it; with --pred: none.",
 )
-@click.option("--json", "as_json", is_flag=True, help="Print the results as JSON.")
+@json_option(help="Print the results as JSON.")
 def eval_(
     dataset,
     checkpoint,
@@ -71,21 +80,29 @@ def eval_(
     garg_crop,
     min_depth,
     max_depth,
+    scaling,
     device,
     batch_size,
-    output,
+    out_dir,
     as_json,
 ):
     """Depth metrics per image, then averaged (AbsRel, SqRel, SqRel-KITTI, RMSE, RMSE log,
     SILog, delta1-3, MAE, iRMSE, iMAE) on pixels with min-depth < gt < max-depth.
+
+    Camera-only self-supervised models are median-scaled per image (flagged in the output);
+    for self-supervised models on sequences with true poses, also the pose ATE.
 
     \b
     Examples:
       sparsetools eval --checkpoint out/run/best.pt out/ds --split test
       sparsetools eval --pred results/depth --gt out/scene/depth_gt -o results/metrics.json
     """
-    from ..ops.metrics import format_metrics_table
-    from ..train.loop import evaluate_checkpoint, evaluate_folders, write_eval_results
+    from ..train.evaluate import (
+        evaluate_checkpoint,
+        evaluate_folders,
+        format_eval_text,
+        write_eval_results,
+    )
 
     if checkpoint is not None and (pred_dir is not None or gt_dir is not None):
         raise click.UsageError("give either --checkpoint with DATASET, or --pred with --gt")
@@ -93,6 +110,8 @@ def eval_(
         raise click.UsageError("give --checkpoint RUN/best.pt DATASET, or --pred DIR --gt DIR")
     if min_depth >= max_depth:
         raise click.BadParameter("must be below --max-depth", param_hint="--min-depth")
+    output = out_dir
+    median = {"auto": None, "median": True, "none": False}[scaling]
     if checkpoint is not None:
         if dataset is None:
             raise click.UsageError("--checkpoint needs the DATASET argument")
@@ -105,12 +124,12 @@ def eval_(
             max_depth=max_depth,
             device=device,
             batch_size=batch_size,
-            progress=progress_enabled(),
+            median_scaling=median,
+            progress=progress_wanted(),
         )
         if output is None:
-            ckpt = Path(result["checkpoint"])
-            output = ckpt.parent / f"eval_{split}.json"
-        title = f"{result['checkpoint']} on {dataset} [{split}]"
+            output = Path(result.checkpoint).parent / f"eval_{split}.json"
+        title = f"{result.checkpoint} on {dataset} [{split}]"
     else:
         if gt_dir is None:
             raise click.UsageError("--pred needs --gt")
@@ -122,15 +141,16 @@ def eval_(
             garg_crop=garg_crop,
             min_depth=min_depth,
             max_depth=max_depth,
-            progress=progress_enabled(),
+            median_scaling=bool(median),
+            progress=progress_wanted(),
         )
         title = f"{pred_dir} against {gt_dir}"
     written = write_eval_results(result, output) if output is not None else []
     if as_json:
-        brief = {k: v for k, v in result.items() if k != "per_image"}
+        brief = {k: v for k, v in result.to_dict().items() if k != "per_image"}
         brief["written"] = [str(p) for p in written]
         click.echo(json.dumps(brief, indent=1))
         return
-    click.echo(format_metrics_table(result["metrics"], title=title))
+    click.echo(format_eval_text(result, title=title))
     for p in written:
         click.echo(f"written       {p}")

@@ -1,12 +1,28 @@
-"""``sparsetools train``: the early-fusion U-Net depth-completion baseline."""
+"""``sparsetools train``: the early-fusion U-Net baseline, supervised or self-supervised."""
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import click
 
-from .options import emit_summary, progress_enabled
+from .options import (
+    batch_size_option,
+    device_option,
+    emit_summary,
+    float_pair,
+    json_option,
+    max_depth_option,
+    output_dir_option,
+    root_flag,
+    seed_option,
+)
+
+
+def progress_wanted() -> bool:
+    """A progress bar on stderr: when it is a terminal and ``-q`` was not given."""
+    return not root_flag("quiet") and sys.stderr.isatty()
 
 
 def crop_hxw(ctx, param, value):
@@ -47,17 +63,134 @@ _FIELDS = {
     "threads": "threads",
 }
 
+# CLI parameter -> SelfSupSettings field (only with --self-supervised)
+_SELFSUP_FIELDS = {
+    "sparse_loss": "sparse_loss",
+    "sparse_weight": "sparse_weight",
+    "silog_lambda": "silog_lambda",
+    "smoothness": "smoothness",
+    "scales": "scales",
+    "depth_range": "depth_range",
+    "auto_mask": "auto_mask",
+    "mcie": "mcie",
+    "mcie_clip": "mcie_clip",
+    "sbm": "sbm",
+    "sbm_beta": "sbm_beta",
+    "sbm_percentile": "sbm_percentile",
+    "pose_width": "pose_width",
+}
+
+
+def selfsup_options(f):
+    """The options of self-supervised training (METHODS.md section 8; docs/selfsup.md)."""
+    decorators = [
+        click.option(
+            "--self-supervised",
+            "self_supervised",
+            is_flag=True,
+            help="Train depth + pose networks from frame triplets (t-1, t, t+1) by view "
+            "synthesis instead of on ground truth (docs/selfsup.md).",
+        ),
+        click.option(
+            "--sparse-loss",
+            type=click.Choice(["none", "l1", "silog"]),
+            default="none",
+            show_default=True,
+            help="Self-supervised: loss on the valid sparse-depth pixels (EffisDepth); gives "
+            "metric scale. none = camera only (evaluated with median scaling).",
+        ),
+        click.option(
+            "--sparse-weight",
+            type=click.FloatRange(min=0),
+            default=0.1,
+            show_default=True,
+            help="Self-supervised: weight of the sparse loss.",
+        ),
+        click.option(
+            "--silog-lambda",
+            type=click.FloatRange(min=0, max=1),
+            default=0.85,
+            show_default=True,
+            help="Self-supervised: lambda of the SILog sparse loss (< 1 keeps the scale).",
+        ),
+        click.option(
+            "--smoothness",
+            type=click.FloatRange(min=0),
+            default=1e-3,
+            show_default=True,
+            help="Self-supervised: weight of the edge-aware smoothness (divided by 2^scale).",
+        ),
+        click.option(
+            "--scales",
+            type=click.IntRange(1, 4),
+            default=4,
+            show_default=True,
+            help="Self-supervised: decoder scales in the loss.",
+        ),
+        click.option(
+            "--depth-range",
+            callback=float_pair(","),
+            default="0.1,100",
+            show_default=True,
+            metavar="MIN,MAX",
+            help="Self-supervised: depth (m) of the sigmoid output's ends.",
+        ),
+        click.option(
+            "--auto-mask/--no-auto-mask",
+            default=True,
+            show_default=True,
+            help="Self-supervised: monodepth2's auto-masking of pixels the unwarped frame explains.",
+        ),
+        click.option(
+            "--mcie/--no-mcie",
+            default=False,
+            show_default=True,
+            help="Self-supervised, night (RNW): photometric loss on MCIE-enhanced frames, one "
+            "table per triplet from the target frame.",
+        ),
+        click.option(
+            "--mcie-clip",
+            type=click.FloatRange(min=0, min_open=True),
+            default=0.004,
+            show_default=True,
+            help="Self-supervised: MCIE clip limit (fraction of the pixels).",
+        ),
+        click.option(
+            "--sbm/--no-sbm",
+            default=False,
+            show_default=True,
+            help="Self-supervised, night (RNW): statistics-based mask, combined with the auto-mask.",
+        ),
+        click.option(
+            "--sbm-beta",
+            type=click.FloatRange(min=0, max=1, max_open=True),
+            default=0.98,
+            show_default=True,
+            help="Self-supervised: EWMA factor of the SBM threshold.",
+        ),
+        click.option(
+            "--sbm-percentile",
+            type=click.FloatRange(min=0, max=100),
+            default=10.0,
+            show_default=True,
+            help="Self-supervised: percentile of the temporal change that the SBM threshold tracks.",
+        ),
+        click.option(
+            "--pose-width",
+            type=click.IntRange(min=1),
+            default=16,
+            show_default=True,
+            help="Self-supervised: width of the pose network's first layer.",
+        ),
+    ]
+    for d in reversed(decorators):
+        f = d(f)
+    return f
+
 
 @click.command("train")
 @click.argument("dataset", type=click.Path(exists=True, file_okay=False, path_type=Path))
-@click.option(
-    "-o",
-    "--out",
-    "run_dir",
-    required=True,
-    type=click.Path(path_type=Path),
-    help="Run folder: metrics.csv, last.pt, best.pt, curves.png, predictions/.",
-)
+@output_dir_option(help="Run folder: metrics.csv, last.pt, best.pt, curves.png, predictions/.")
 @click.option(
     "--input",
     "input_mode",
@@ -74,7 +207,7 @@ _FIELDS = {
     help="Loss on valid ground-truth pixels.",
 )
 @click.option("--epochs", type=click.IntRange(min=1), default=20, show_default=True)
-@click.option("--batch-size", type=click.IntRange(min=1), default=8, show_default=True)
+@batch_size_option(default=8)
 @click.option(
     "--lr",
     type=click.FloatRange(min=0, min_open=True),
@@ -111,13 +244,7 @@ _FIELDS = {
     metavar="HxW",
     help="Bottom-centre crop of training images (needed when sizes differ).",
 )
-@click.option(
-    "--seed",
-    type=int,
-    default=0,
-    show_default=True,
-    help="Seed of the weights, sample order and augmentation.",
-)
+@seed_option(help="Seed of the weights, sample order and augmentation.")
 @click.option(
     "--width",
     type=click.IntRange(min=1),
@@ -147,7 +274,7 @@ _FIELDS = {
     default=None,
     help="Stop after this many optimizer steps in total (quick runs).",
 )
-@click.option("--device", default="cpu", show_default=True, help="cpu, or cuda when available.")
+@device_option
 @click.option("--train-split", default="train", show_default=True)
 @click.option(
     "--val-split",
@@ -155,12 +282,8 @@ _FIELDS = {
     show_default=True,
     help="Split evaluated after every epoch (best.pt = lowest RMSE on it).",
 )
-@click.option(
-    "--max-depth",
-    type=click.FloatRange(min=0, min_open=True),
-    default=80.0,
-    show_default=True,
-    help="Ground truth beyond this (m) is not evaluated.",
+@max_depth_option(
+    default=80.0, help="Ground truth at or beyond this (m) is neither trained on nor evaluated."
 )
 @click.option(
     "--pictures",
@@ -175,10 +298,15 @@ _FIELDS = {
     default=None,
     help="torch CPU threads (default: the cores available).",
 )
-@click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
+@selfsup_options
+@json_option(help="Print the summary as JSON.")
 @click.pass_context
-def train(ctx, dataset, run_dir, resume, as_json, **options):
+def train(ctx, dataset, out_dir, resume, as_json, self_supervised, **options):
     """Train the early-fusion U-Net on a dataset built by `sparsetools dataset build`.
+
+    Supervised (default): on the ground truth. --self-supervised: depth and pose networks
+    from consecutive frames of the dataset's sequences (photometric loss; with --sparse-loss
+    the sparse depth gives metric scale; docs/selfsup.md).
 
     After every epoch: validation metrics in RUN_DIR/metrics.csv, checkpoints last.pt and
     best.pt (lowest validation RMSE), curves.png and prediction pictures. The same seed
@@ -189,22 +317,39 @@ def train(ctx, dataset, run_dir, resume, as_json, **options):
       sparsetools train out/ds -o out/run_rgbd --input rgbd --epochs 20
       sparsetools train out/ds -o out/run_rgb --input rgb --width 16 --crop 96x320
       sparsetools train out/ds -o out/run_rgbd --resume --epochs 30
+      sparsetools train out/ds -o out/run_ss --self-supervised --input rgb --width 8
+      sparsetools train out/ds -o out/run_ss4 --self-supervised --sparse-loss silog
       sparsetools eval --checkpoint out/run_rgbd/best.pt out/ds --split test
     """
-    from ..train.loop import TrainConfig
+    from ..train.config import SelfSupSettings, TrainConfig
     from ..train.loop import train as run_training
 
-    explicit = {
-        _FIELDS[name]
-        for name in _FIELDS
-        if ctx.get_parameter_source(name) is not click.core.ParameterSource.DEFAULT
-    }
+    def given(name):
+        return ctx.get_parameter_source(name) is not click.core.ParameterSource.DEFAULT
+
+    selfsup_values = {_SELFSUP_FIELDS[k]: options.pop(k) for k in list(_SELFSUP_FIELDS)}
+    set_selfsup = [k for k in _SELFSUP_FIELDS if given(k)]
+    if set_selfsup and not self_supervised and not resume:
+        option = "--" + set_selfsup[0].replace("_", "-")
+        raise click.UsageError(
+            f"{option} is an option of self-supervised training: add --self-supervised"
+        )
+
+    explicit = {_FIELDS[name] for name in _FIELDS if given(name)}
+    explicit |= {f"selfsup.{_SELFSUP_FIELDS[name]}" for name in set_selfsup}
+    if given("self_supervised"):
+        explicit.add("self_supervised")
     config = TrainConfig(
-        dataset=str(dataset), out_dir=str(run_dir), **{_FIELDS[k]: v for k, v in options.items()}
+        dataset=str(dataset),
+        out_dir=str(out_dir),
+        selfsup=SelfSupSettings(**selfsup_values) if self_supervised or set_selfsup else None,
+        **{_FIELDS[k]: v for k, v in options.items()},
     )
-    summary = run_training(config, resume=resume, progress=progress_enabled(), explicit=explicit)
+    summary = run_training(
+        config, resume=resume, progress=progress_wanted(), explicit=explicit
+    ).to_dict()
     last = summary.pop("last") or {}
     for key in ("rmse", "abs_rel", "delta1"):
         if key in last:
             summary[f"last_{key}"] = last[key]
-    emit_summary(summary, as_json=as_json, title=f"training run in {run_dir}")
+    emit_summary(summary, as_json=as_json, title=f"training run in {out_dir}")

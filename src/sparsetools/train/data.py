@@ -23,6 +23,7 @@ __all__ = [
     "augment_sample",
     "bottom_centre_crop",
     "collate_samples",
+    "colour_jitter",
     "open_split",
 ]
 
@@ -37,7 +38,7 @@ def open_split(path, split: str, *, need_gt: bool = True):
     FormatError
         ``need_gt`` and some samples of the split have no ground truth.
     """
-    from ..io.dataset import DatasetReader
+    from ..io.dataset_reader import DatasetReader
 
     reader = DatasetReader(path)
     if split not in reader.splits:
@@ -79,6 +80,30 @@ def _resize_nearest(depth: np.ndarray, height: int, width: int) -> np.ndarray:
     import cv2
 
     return cv2.resize(depth, (width, height), interpolation=cv2.INTER_NEAREST)
+
+
+_LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
+
+
+def colour_jitter(rgb: np.ndarray, factors) -> np.ndarray:
+    """Brightness, contrast and saturation changes of an image.
+
+    Parameters
+    ----------
+    rgb : (H, W, 3) float32, 0..1
+    factors : (brightness, contrast, saturation)
+        Multipliers (1 = unchanged); contrast scales about the mean grey level of ``rgb``.
+
+    Returns
+    -------
+    (H, W, 3) float32, clipped to 0..1.
+    """
+    brightness, contrast, saturation = (np.float32(f) for f in factors)
+    rgb = rgb * brightness
+    grey = rgb @ _LUMA
+    rgb = (rgb - grey.mean()) * contrast + grey.mean()
+    grey = (rgb @ _LUMA)[:, :, None]
+    return np.clip((rgb - grey) * saturation + grey, 0.0, 1.0)
 
 
 def augment_sample(
@@ -136,12 +161,7 @@ def augment_sample(
     if flip and do_flip:
         rgb, sparse, gt = rgb[:, ::-1], sparse[:, ::-1], gt[:, ::-1]
     if jitter > 0:
-        brightness, contrast, saturation = (np.float32(f) for f in factors)
-        rgb = rgb * brightness
-        grey = rgb @ np.array([0.299, 0.587, 0.114], dtype=np.float32)
-        rgb = (rgb - grey.mean()) * contrast + grey.mean()
-        grey = (rgb @ np.array([0.299, 0.587, 0.114], dtype=np.float32))[:, :, None]
-        rgb = np.clip((rgb - grey) * saturation + grey, 0.0, 1.0)
+        rgb = colour_jitter(rgb, factors)
     return (
         np.ascontiguousarray(rgb, dtype=np.float32),
         np.ascontiguousarray(sparse, dtype=np.float32),

@@ -25,6 +25,18 @@ input ("early fusion") and go through one encoder-decoder:
 
 Inputs of any size: the network pads to a multiple of 16 at the bottom and right, and crops
 the prediction back.
+
+For self-supervised training (``output='disparity'``) the softplus head and the adjustment
+layer are replaced by monodepth2's multi-scale output: a 3x3 convolution (reflection padding)
+and a sigmoid on each of the four decoder stages (scales 1, 1/2, 1/4, 1/8), read as depth by
+:func:`disparity_to_depth`. By default the heads get torch's initialisation, as in monodepth2
+(sigmoid about 0.5: about 0.2 m for the range 0.1-100 m), which suits camera-only training
+(the pose network's small initial translations give that depth a useful parallax).
+``initial_depth`` starts them at a given depth instead (zero weights, matching bias):
+self-supervised training with a sparse-LiDAR loss uses 10 m, because there the scale becomes
+metric, and pixels the LiDAR does not reach (near road, sky, tall buildings) stayed at about
+0.2 m, where every warp is far worse than no warp, the auto-mask removes them and nothing
+moves them (measured on the synthetic street videos).
 """
 
 from __future__ import annotations
@@ -37,12 +49,21 @@ from torch import nn
 
 from ..errors import ParameterError
 
-__all__ = ["INPUT_CHANNELS", "DepthCompletionUNet", "build_model", "model_inputs"]
+__all__ = [
+    "INPUT_CHANNELS",
+    "OUTPUTS",
+    "DepthCompletionUNet",
+    "build_model",
+    "disparity_to_depth",
+    "model_inputs",
+]
 
 #: Number of input channels of each input mode.
 INPUT_CHANNELS = {"rgb": 3, "rgbd": 4, "rgbdm": 5}
 #: Encoder widths at ``width = 32``.
 BASE_WIDTHS = (32, 64, 128, 256, 512)
+#: What the network predicts: metric depth, or multi-scale sigmoid disparity.
+OUTPUTS = ("depth", "disparity")
 #: Downsampling factor of the deepest level.
 STRIDE = 16
 
@@ -141,7 +162,7 @@ class DecoderStage(nn.Module):
 
 
 class DepthCompletionUNet(nn.Module):
-    """Early-fusion U-Net: (B, C, H, W) input (see :func:`model_inputs`) -> (B, 1, H, W) metres.
+    """Early-fusion U-Net: (B, C, H, W) input (see :func:`model_inputs`) -> depth.
 
     Parameters
     ----------
@@ -151,20 +172,56 @@ class DepthCompletionUNet(nn.Module):
         Width of the first level; the levels are ``width * (1, 2, 4, 8, 16)`` (32 gives the
         paper's 32-64-128-256-512).
     final_layer : bool
-        Add the final 3x3 adjustment layer.
+        Add the final 3x3 adjustment layer (``output='depth'`` only).
+    output : {'depth', 'disparity'}
+        ``depth``: one (B, 1, H, W) map in metres (supervised training). ``disparity``
+        (self-supervised training): a 3x3 convolution and a sigmoid on each of the four
+        decoder stages, i.e. a list of four (B, 1, ceil(H / 2^s), ceil(W / 2^s)) maps in
+        (0, 1) for scales s = 0 (full resolution), 1, 2, 3 (monodepth2's outputs), read as
+        depth by :func:`disparity_to_depth` with ``depth_range``.
+    depth_range : (min, max), metres
+        Depth of sigmoid 1 and 0 (``output='disparity'``; monodepth2: 0.1, 100).
+    initial_depth : float, optional, metres
+        ``output='disparity'``: start every scale at this depth (zero weights, matching bias)
+        instead of torch's default initialisation (sigmoid about 0.5, i.e. about 0.2 m).
     """
 
-    def __init__(self, input_mode: str = "rgbd", *, width: int = 32, final_layer: bool = False):
+    def __init__(
+        self,
+        input_mode: str = "rgbd",
+        *,
+        width: int = 32,
+        final_layer: bool = False,
+        output: str = "depth",
+        depth_range: tuple[float, float] = (0.1, 100.0),
+        initial_depth: float | None = None,
+    ):
         super().__init__()
         if input_mode not in INPUT_CHANNELS:
             raise ParameterError(
-                f"unknown input mode {input_mode!r}; choose one of {sorted(INPUT_CHANNELS)}"
+                f"unknown input mode {input_mode!r}; choose one of {sorted(INPUT_CHANNELS)}",
+                param="input_mode",
             )
         if int(width) < 1:
-            raise ParameterError(f"width must be >= 1, got {width}")
+            raise ParameterError(f"width must be >= 1, got {width}", param="width")
+        if output not in OUTPUTS:
+            raise ParameterError(f"unknown output {output!r}; choose depth or disparity")
+        if output == "disparity" and final_layer:
+            raise ParameterError(
+                "the final adjustment layer needs output='depth'", param="final_layer"
+            )
+        lo, hi = (float(v) for v in depth_range)
+        if not (0 < lo < hi and math.isfinite(hi)):
+            raise ParameterError(
+                f"depth_range must satisfy 0 < min < max < inf, got {depth_range}",
+                param="depth_range",
+            )
         self.input_mode = input_mode
         self.width = int(width)
         self.final_layer = bool(final_layer)
+        self.output = output
+        self.depth_range = (lo, hi)
+        self.initial_depth = None if initial_depth is None else float(initial_depth)
         c_in = INPUT_CHANNELS[input_mode]
         widths = [max(1, round(b * self.width / 32)) for b in BASE_WIDTHS]
         self.widths = tuple(widths)
@@ -184,6 +241,21 @@ class DepthCompletionUNet(nn.Module):
                 for i in range(len(widths) - 1, 0, -1)
             ]
         )
+        if output == "disparity":
+            # one head per decoder stage, finest first (scale 0 = full resolution)
+            self.disparity_heads = nn.ModuleList(
+                [
+                    nn.Conv2d(widths[i], 1, 3, padding=1, padding_mode="reflect")
+                    for i in range(len(widths) - 1)
+                ]
+            )
+            if self.initial_depth is not None:  # see the module docstring
+                start = min(max(self.initial_depth, lo), hi)
+                sigma = min(max((1 / start - 1 / hi) / (1 / lo - 1 / hi), 1e-4), 1 - 1e-4)
+                for head in self.disparity_heads:
+                    nn.init.zeros_(head.weight)
+                    nn.init.constant_(head.bias, math.log(sigma / (1 - sigma)))
+            return
         self.head = nn.Conv2d(widths[0], 1, 1)
         nn.init.zeros_(self.head.weight)
         nn.init.constant_(self.head.bias, _inverse_softplus(_INIT_DEPTH / _DEPTH_SCALE))
@@ -198,7 +270,7 @@ class DepthCompletionUNet(nn.Module):
     def in_channels(self) -> int:
         return INPUT_CHANNELS[self.input_mode]
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor) -> torch.Tensor | list[torch.Tensor]:
         if x.ndim != 4 or x.shape[1] != self.in_channels:
             raise ParameterError(
                 f"model for input mode {self.input_mode!r} expects (B, {self.in_channels}, H, W), "
@@ -216,8 +288,18 @@ class DepthCompletionUNet(nn.Module):
             y = block(y)
             feats.append(y)
         y = feats[-1]
+        stages = []
         for stage, skip in zip(self.decoder, reversed(feats[:-1]), strict=True):
             y = stage(y, skip)
+            stages.append(y)
+        if self.output == "disparity":
+            out = []
+            for s, (head, feat) in enumerate(
+                zip(self.disparity_heads, reversed(stages), strict=True)
+            ):
+                hs, ws = -(-h // 2**s), -(-w // 2**s)
+                out.append(torch.sigmoid(head(feat))[:, :, :hs, :ws])
+            return out
         depth = _DEPTH_SCALE * F.softplus(self.head(y))
         if self.final_layer:
             coarse = depth / _DEPTH_SCALE
@@ -228,9 +310,41 @@ class DepthCompletionUNet(nn.Module):
             depth = depth + self.adjust(torch.cat(parts, dim=1)) * _DEPTH_SCALE
         return depth[:, :, :h, :w]
 
+    def predict_depth(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, 1, H, W) depth in metres of the network input ``x`` (see :func:`model_inputs`).
+
+        For ``output='disparity'`` the full-resolution (scale 0) disparity as depth.
+        """
+        out = self(x)
+        if self.output == "disparity":
+            return disparity_to_depth(out[0], *self.depth_range)
+        return out
+
     def config(self) -> dict:
         """The constructor arguments (saved in checkpoints)."""
-        return {"input_mode": self.input_mode, "width": self.width, "final_layer": self.final_layer}
+        cfg = {"input_mode": self.input_mode, "width": self.width, "final_layer": self.final_layer}
+        if self.output != "depth":  # supervised checkpoints keep their original three keys
+            cfg["output"] = self.output
+            cfg["depth_range"] = list(self.depth_range)
+            cfg["initial_depth"] = self.initial_depth
+        return cfg
+
+
+def disparity_to_depth(sigma: torch.Tensor, min_depth: float, max_depth: float) -> torch.Tensor:
+    """Depth of a sigmoid output: ``1 / (1/max + (1/min - 1/max) sigma)`` (monodepth2).
+
+    Parameters
+    ----------
+    sigma : tensor in [0, 1]
+    min_depth, max_depth : float, metres
+        Depth at sigma = 1 and sigma = 0.
+
+    Returns
+    -------
+    tensor of the same shape, metres, in [min_depth, max_depth].
+    """
+    lo, hi = 1.0 / max_depth, 1.0 / min_depth
+    return 1.0 / (lo + (hi - lo) * sigma)
 
 
 def _inverse_softplus(y: float) -> float:
@@ -244,6 +358,9 @@ def build_model(config: dict) -> DepthCompletionUNet:
             config["input_mode"],
             width=int(config["width"]),
             final_layer=bool(config["final_layer"]),
+            output=str(config.get("output", "depth")),
+            depth_range=tuple(config.get("depth_range", (0.1, 100.0))),
+            initial_depth=config.get("initial_depth"),
         )
     except KeyError as exc:
         raise ParameterError(f"model configuration lacks {exc.args[0]!r}") from None

@@ -1,0 +1,365 @@
+"""Run folders and checkpoints: what ``last.pt`` / ``best.pt`` hold, written and read back checked.
+
+A run folder holds::
+
+    RUN_DIR/
+      config.json           the training configuration
+      metrics.csv           one row per epoch: train loss, validation loss and metrics
+      last.pt, best.pt      checkpoints (best = best validation metric)
+      curves.png            loss and validation metric per epoch
+      predictions/epoch_NNN.png   a few validation samples
+
+A checkpoint file is a plain dict of tensors, numbers and strings (``torch.load(path,
+weights_only=True)`` reads it): format tag and version, kind (``supervised`` or
+``self-supervised``), the configuration, the depth model's constructor arguments and weights,
+for self-supervised runs the pose network and the SBM threshold, the optimizer state, the
+position in training (:class:`TrainingState`) and the torch RNG state. :func:`load_checkpoint`
+checks it and returns a typed :class:`Checkpoint`.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from ..errors import FormatError, OutputError, ParameterError
+from .config import TrainConfig
+from .model import INPUT_CHANNELS, DepthCompletionUNet, build_model
+from .runtime import save_torch
+
+__all__ = [
+    "CHECKPOINT_FORMAT",
+    "CHECKPOINT_VERSION",
+    "KINDS",
+    "RUN_FILES",
+    "BestRecord",
+    "Checkpoint",
+    "TrainingState",
+    "check_run_dir",
+    "load_checkpoint",
+    "load_weights",
+    "model_from_checkpoint",
+    "pose_from_checkpoint",
+    "save_checkpoint",
+]
+
+CHECKPOINT_FORMAT = "sparsetools-depth-checkpoint"
+#: 2 added self-supervised checkpoints (``kind``, pose network); version 1 files still load.
+CHECKPOINT_VERSION = 2
+KINDS = ("supervised", "self-supervised")
+#: Files whose presence marks a folder as a run folder.
+RUN_FILES = ("last.pt", "best.pt", "metrics.csv")
+
+
+@dataclass
+class BestRecord:
+    """The best validation result so far: metric name, its value, the epoch and its row."""
+
+    name: str = "rmse"
+    value: float = math.inf
+    epoch: int | None = None
+    row: dict | None = None
+
+    def improves(self, value: float) -> bool:
+        """Whether ``value`` (lower is better) beats the record."""
+        return bool(value < self.value)
+
+
+@dataclass
+class TrainingState:
+    """Where a run stands: enough, with the weights and RNG, to continue it exactly.
+
+    ``epoch`` counts finished epochs; ``batch_in_epoch`` the batches done in the current one;
+    ``epoch_sums`` the per-sample sums of the loss terms over those batches (``loss`` is the
+    total) and ``epoch_samples`` their count; ``history`` one metrics row per epoch.
+    """
+
+    epoch: int = 0
+    batch_in_epoch: int = 0
+    step: int = 0
+    epoch_sums: dict[str, float] = field(default_factory=dict)
+    epoch_samples: int = 0
+    epoch_seconds: float = 0.0
+    best: BestRecord = field(default_factory=BestRecord)
+    history: list[dict] = field(default_factory=list)
+
+    def start_epoch(self) -> None:
+        """Reset the per-epoch counters after an epoch is finished."""
+        self.epoch += 1
+        self.batch_in_epoch = 0
+        self.epoch_sums = {}
+        self.epoch_samples = 0
+        self.epoch_seconds = 0.0
+
+    def add_batch(self, terms: dict[str, float], n: int) -> None:
+        """Count one optimizer step over ``n`` samples with the given loss terms (batch means)."""
+        self.step += 1
+        self.batch_in_epoch += 1
+        for k, v in terms.items():
+            self.epoch_sums[k] = self.epoch_sums.get(k, 0.0) + float(v) * n
+        self.epoch_samples += n
+
+    def epoch_mean(self, name: str) -> float:
+        """Per-sample mean of loss term ``name`` over the batches of the current epoch."""
+        return self.epoch_sums.get(name, 0.0) / max(self.epoch_samples, 1)
+
+    def to_dict(self) -> dict:
+        return {
+            "epoch": self.epoch,
+            "batch_in_epoch": self.batch_in_epoch,
+            "step": self.step,
+            "epoch_loss_sum": self.epoch_sums.get("loss", 0.0),  # version 1 readers
+            "epoch_sums": dict(self.epoch_sums),
+            "epoch_samples": self.epoch_samples,
+            "epoch_seconds": self.epoch_seconds,
+            "best": {
+                self.best.name: self.best.value,
+                "epoch": self.best.epoch,
+                "metrics": self.best.row,
+            },
+            "best_metric": {
+                "name": self.best.name,
+                "value": self.best.value,
+                "epoch": self.best.epoch,
+            },
+            "history": list(self.history),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> TrainingState:
+        sums = d.get("epoch_sums")
+        if sums is None:
+            sums = {"loss": float(d["epoch_loss_sum"])} if d.get("epoch_samples") else {}
+        bm = d.get("best_metric") or {"name": "rmse", "value": d["best"]["rmse"], "epoch": None}
+        best = BestRecord(
+            name=str(bm["name"]),
+            value=float(bm["value"]),
+            epoch=d["best"].get("epoch"),
+            row=d["best"].get("metrics"),
+        )
+        return cls(
+            epoch=int(d["epoch"]),
+            batch_in_epoch=int(d["batch_in_epoch"]),
+            step=int(d["step"]),
+            epoch_sums={k: float(v) for k, v in sums.items()},
+            epoch_samples=int(d["epoch_samples"]),
+            epoch_seconds=float(d.get("epoch_seconds", 0.0)),
+            best=best,
+            history=list(d["history"]),
+        )
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    """A checked checkpoint (:func:`load_checkpoint`).
+
+    Attributes
+    ----------
+    path : Path
+    kind : {'supervised', 'self-supervised'}
+    config : TrainConfig
+    model_config : dict
+        Constructor arguments of the depth network (:meth:`DepthCompletionUNet.config`).
+    model : dict of str to Tensor
+        The depth network's state dict.
+    optimizer : dict
+        The optimizer's state dict.
+    state : TrainingState
+    rng : dict
+        ``torch``: the torch RNG state at the time of saving.
+    pose_config, pose_model : dict or None
+        The pose network (self-supervised runs only).
+    sbm_threshold : float or None
+        The running SBM threshold (self-supervised runs with ``sbm``; None before its first
+        batch).
+    """
+
+    path: Path
+    kind: str
+    config: TrainConfig
+    model_config: dict
+    model: dict
+    optimizer: dict
+    state: TrainingState
+    rng: dict
+    pose_config: dict | None = None
+    pose_model: dict | None = None
+    sbm_threshold: float | None = None
+
+    @property
+    def input_mode(self) -> str:
+        return self.model_config["input_mode"]
+
+
+def check_run_dir(out: Path, dataset: Path, resume: bool) -> None:
+    """Refuse a run folder that is a file, inside the dataset, or (without resume) taken.
+
+    Raises
+    ------
+    OutputError
+        ``out`` is a file, inside ``dataset``, or already holds a run and ``resume`` is off.
+    ParameterError
+        ``resume`` and there is no ``last.pt`` to continue from.
+    """
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"{out} exists and is not a folder")
+    try:
+        if out.resolve() == dataset.resolve() or dataset.resolve() in out.resolve().parents:
+            raise OutputError(f"run folder {out} is inside the dataset {dataset}: choose another")
+    except OSError:  # pragma: no cover - unresolvable paths are reported later
+        pass
+    if resume:
+        if not (out / "last.pt").is_file():
+            raise ParameterError(f"nothing to resume: {out / 'last.pt'} does not exist")
+        return
+    present = [n for n in RUN_FILES if (out / n).exists()]
+    if present:
+        raise OutputError(
+            f"{out} already holds a run ({', '.join(present)}): use --resume to continue it "
+            "or choose another folder"
+        )
+
+
+def _state_dict_cpu(module: torch.nn.Module) -> dict:
+    return {k: v.detach().cpu() for k, v in module.state_dict().items()}
+
+
+def save_checkpoint(
+    path: Path,
+    *,
+    config: TrainConfig,
+    model: DepthCompletionUNet,
+    optimizer: torch.optim.Optimizer,
+    state: TrainingState,
+    pose_model: torch.nn.Module | None = None,
+    sbm_threshold: float | None = None,
+) -> None:
+    """Write a checkpoint atomically (the torch RNG state is taken now)."""
+    obj = {
+        "format": CHECKPOINT_FORMAT,
+        "version": CHECKPOINT_VERSION,
+        "kind": "self-supervised" if config.self_supervised else "supervised",
+        "config": config.to_dict(),
+        "model_config": model.config(),
+        "model": _state_dict_cpu(model),
+        "optimizer": optimizer.state_dict(),
+        **state.to_dict(),
+        "val_metrics": state.history[-1] if state.history else None,
+        "rng": {"torch": torch.get_rng_state()},
+    }
+    if pose_model is not None:
+        obj["pose_config"] = pose_model.config()
+        obj["pose_model"] = _state_dict_cpu(pose_model)
+    if sbm_threshold is not None:
+        obj["sbm_threshold"] = float(sbm_threshold)
+    save_torch(obj, path)
+
+
+def load_checkpoint(path: str | os.PathLike, *, input_mode: str | None = None) -> Checkpoint:
+    """Read and check a checkpoint written by training.
+
+    Parameters
+    ----------
+    path : path-like
+        ``last.pt`` or ``best.pt`` (a run folder is accepted and means its ``best.pt``).
+    input_mode : str, optional
+        The input mode the caller will feed; a checkpoint of another mode is refused.
+
+    Returns
+    -------
+    Checkpoint
+
+    Raises
+    ------
+    FormatError
+        Missing, unreadable or foreign file; weights that do not fit the stored configuration.
+    ParameterError
+        ``input_mode`` differs from the checkpoint's.
+    """
+    path = Path(path)
+    if path.is_dir():
+        path = path / "best.pt"
+    if not path.is_file():
+        raise FormatError(f"{path}: no such checkpoint")
+    try:
+        raw = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many types (pickle, zip, runtime) for bad files
+        raise FormatError(
+            f"{path}: not a readable torch checkpoint ({type(exc).__name__})"
+        ) from exc
+    if not isinstance(raw, dict) or raw.get("format") != CHECKPOINT_FORMAT:
+        raise FormatError(f"{path}: not a sparsetools depth checkpoint")
+    if int(raw.get("version", 0)) > CHECKPOINT_VERSION:
+        raise FormatError(
+            f"{path}: checkpoint version {raw['version']} is newer than this sparsetools"
+        )
+    kind = raw.get("kind", "supervised")
+    if kind not in KINDS:
+        raise FormatError(f"{path}: unknown checkpoint kind {kind!r}")
+    mc = raw.get("model_config") or {}
+    if input_mode is not None and mc.get("input_mode") != input_mode:
+        raise ParameterError(
+            f"{path} was trained with input mode '{mc.get('input_mode')}' "
+            f"({INPUT_CHANNELS.get(mc.get('input_mode'), '?')} channels), not '{input_mode}'",
+            param="input_mode",
+        )
+    stem = (raw.get("model") or {}).get("stem.0.weight")
+    expected = INPUT_CHANNELS.get(mc.get("input_mode"))
+    if stem is None or expected is None or stem.shape[1] != expected:
+        got = None if stem is None else int(stem.shape[1])
+        raise FormatError(
+            f"{path}: weights for {got} input channels do not match the stored input mode "
+            f"'{mc.get('input_mode')}'"
+        )
+    if kind == "self-supervised" and (raw.get("pose_model") is None or not raw.get("pose_config")):
+        raise FormatError(f"{path}: self-supervised checkpoint without its pose network")
+    try:
+        config = TrainConfig.from_dict(raw["config"])
+        state = TrainingState.from_dict(raw)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise FormatError(f"{path}: incomplete checkpoint ({type(exc).__name__}: {exc})") from exc
+    return Checkpoint(
+        path=path,
+        kind=kind,
+        config=config,
+        model_config=dict(mc),
+        model=raw["model"],
+        optimizer=raw.get("optimizer") or {},
+        state=state,
+        rng=raw.get("rng") or {},
+        pose_config=raw.get("pose_config"),
+        pose_model=raw.get("pose_model"),
+        sbm_threshold=raw.get("sbm_threshold"),
+    )
+
+
+def load_weights(module: torch.nn.Module, weights: dict, path: Path, what: str) -> None:
+    """Load a state dict; a mismatch is a one-line :class:`FormatError` naming ``path``."""
+    try:
+        module.load_state_dict(weights)
+    except RuntimeError as exc:
+        first = str(exc).strip().splitlines()
+        detail = first[1].strip() if len(first) > 1 else first[0]
+        raise FormatError(f"{path}: {what} weights do not fit the model ({detail})") from exc
+
+
+def model_from_checkpoint(ckpt: Checkpoint) -> DepthCompletionUNet:
+    """The depth network of a checkpoint, with its weights (on CPU, in training mode)."""
+    model = build_model(ckpt.model_config)
+    load_weights(model, ckpt.model, ckpt.path, "depth-network")
+    return model
+
+
+def pose_from_checkpoint(ckpt: Checkpoint):
+    """The pose network of a self-supervised checkpoint, with its weights (on CPU)."""
+    from .selfsup.pose_net import build_pose_net
+
+    if ckpt.pose_config is None or ckpt.pose_model is None:
+        raise FormatError(f"{ckpt.path}: no pose network (a {ckpt.kind} checkpoint)")
+    net = build_pose_net(ckpt.pose_config)
+    load_weights(net, ckpt.pose_model, ckpt.path, "pose-network")
+    return net

@@ -1,0 +1,349 @@
+"""The settings of a training run: :class:`TrainConfig`, its checks, the resume rule, the schedule.
+
+One configuration serves both kinds of training:
+
+- supervised depth completion (``selfsup=None``): the loss ``loss`` on valid ground truth;
+- self-supervised training from video (``selfsup=SelfSupSettings(...)``): photometric
+  reconstruction of the target frame from its neighbours, optionally with a sparse-LiDAR loss
+  (METHODS.md section 8, :mod:`sparsetools.train.selfsup`).
+
+A configuration is saved in ``config.json`` and in every checkpoint (:meth:`TrainConfig.to_dict`,
+flat JSON with the self-supervised settings nested under ``selfsup``). ``--resume`` continues a
+run with its saved configuration; only :attr:`TrainConfig.RESUMABLE` fields may change
+(:func:`resumed_config`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields, replace
+
+from ..errors import ParameterError
+from .losses import LOSSES
+from .model import INPUT_CHANNELS
+from .runtime import resolve_device
+
+__all__ = [
+    "SPARSE_LOSSES",
+    "SelfSupSettings",
+    "TrainConfig",
+    "epoch_lr",
+    "resumed_config",
+]
+
+#: Sparse-LiDAR losses of self-supervised training ("none" = camera only, scale-ambiguous).
+SPARSE_LOSSES = ("none", "l1", "silog")
+
+
+@dataclass(frozen=True)
+class SelfSupSettings:
+    """Settings of self-supervised training from frame triplets (t-1, t, t+1).
+
+    Parameters
+    ----------
+    sparse_loss : {'none', 'l1', 'silog'}
+        EffisDepth's sparse loss on the pixels with valid sparse depth; it gives the model
+        metric scale. ``'none'``: camera only (evaluated with per-image median scaling).
+    sparse_weight : float
+        Weight of the sparse loss against the photometric loss.
+    silog_lambda : float
+        lambda of the SILog sparse loss ``10 sqrt(mean d^2 - lambda (mean d)^2)``; < 1 keeps a
+        penalty on the scale.
+    smoothness : float
+        Weight of the edge-aware smoothness (monodepth2: 1e-3), divided by 2^scale.
+    scales : int
+        Decoder outputs used by the losses (1-4; monodepth2: 4).
+    depth_range : (min, max), metres
+        Depth of the sigmoid output: 1 / (1/max + (1/min - 1/max) sigma) (monodepth2: 0.1, 100).
+    auto_mask : bool
+        monodepth2's auto-masking (identity reprojection).
+    mcie : bool
+        RNW: photometric loss on MCIE-enhanced frames, one table per triplet built from the
+        target frame (:func:`sparsetools.ops.enhance.mcie_lut`).
+    mcie_clip : float
+        MCIE clip limit (fraction of the pixel count; RNW 0.004).
+    sbm : bool
+        RNW's statistics-based mask, combined with the auto-mask.
+    sbm_beta : float
+        EWMA factor of the SBM threshold (RNW: 0.98).
+    sbm_percentile : float
+        Percentile (0-100) of the per-pixel temporal change that the threshold tracks.
+    pose_width : int
+        Width of the first level of the pose network.
+    """
+
+    sparse_loss: str = "none"
+    sparse_weight: float = 0.1
+    silog_lambda: float = 0.85
+    smoothness: float = 1e-3
+    scales: int = 4
+    depth_range: tuple[float, float] = (0.1, 100.0)
+    auto_mask: bool = True
+    mcie: bool = False
+    mcie_clip: float = 0.004
+    sbm: bool = False
+    sbm_beta: float = 0.98
+    sbm_percentile: float = 10.0
+    pose_width: int = 16
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["depth_range"] = list(self.depth_range)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> SelfSupSettings:
+        names = {f.name for f in fields(cls)}
+        kw = {k: v for k, v in d.items() if k in names}
+        if "depth_range" in kw:
+            kw["depth_range"] = tuple(float(v) for v in kw["depth_range"])
+        return cls(**kw)
+
+    def validate(self) -> None:
+        """Raise :class:`ParameterError` (naming the setting) for a value out of range."""
+        if self.sparse_loss not in SPARSE_LOSSES:
+            raise ParameterError(
+                f"unknown sparse loss {self.sparse_loss!r}; choose one of {', '.join(SPARSE_LOSSES)}",
+                param="sparse_loss",
+            )
+        for name in ("sparse_weight", "smoothness", "mcie_clip"):
+            v = float(getattr(self, name))
+            if not (math.isfinite(v) and v >= 0):
+                raise ParameterError(f"{name} must be a finite number >= 0, got {v}", param=name)
+        if self.mcie_clip <= 0:
+            raise ParameterError("mcie_clip must be > 0", param="mcie_clip")
+        if not 0 <= self.silog_lambda <= 1:
+            raise ParameterError(
+                f"silog_lambda must be in [0, 1], got {self.silog_lambda}", param="silog_lambda"
+            )
+        if not 1 <= int(self.scales) <= 4:
+            raise ParameterError(f"scales must be 1-4, got {self.scales}", param="scales")
+        lo, hi = self.depth_range
+        if not (0 < lo < hi and math.isfinite(hi)):
+            raise ParameterError(
+                f"depth_range must satisfy 0 < min < max < inf, got {self.depth_range}",
+                param="depth_range",
+            )
+        if not 0 <= self.sbm_beta < 1:
+            raise ParameterError(
+                f"sbm_beta must be in [0, 1), got {self.sbm_beta}", param="sbm_beta"
+            )
+        if not 0 <= self.sbm_percentile <= 100:
+            raise ParameterError(
+                f"sbm_percentile must be in [0, 100], got {self.sbm_percentile}",
+                param="sbm_percentile",
+            )
+        if int(self.pose_width) < 1:
+            raise ParameterError(
+                f"pose_width must be >= 1, got {self.pose_width}", param="pose_width"
+            )
+
+    @property
+    def metric_scale(self) -> bool:
+        """True when the sparse loss fixes the scale (no median scaling in evaluation)."""
+        return self.sparse_loss != "none"
+
+
+@dataclass
+class TrainConfig:
+    """Everything that defines a training run (saved in ``config.json`` and checkpoints).
+
+    ``crop`` is (height, width); ``max_steps`` caps the total number of optimizer steps.
+    ``workers``, ``device`` and ``threads`` do not change the results on CPU. ``selfsup``
+    selects self-supervised training (None: supervised, with ``loss`` on ground truth).
+    """
+
+    dataset: str
+    out_dir: str
+    input_mode: str = "rgbd"
+    loss: str = "l1"
+    epochs: int = 20
+    batch_size: int = 8
+    lr: float = 1e-3
+    optimizer: str = "adam"
+    lr_schedule: str = "constant"
+    lr_step: int = 5
+    lr_gamma: float = 0.5
+    crop: tuple[int, int] | None = None
+    seed: int = 0
+    width: int = 32
+    final_layer: bool = False
+    workers: int = 0
+    max_steps: int | None = None
+    device: str = "cpu"
+    train_split: str = "train"
+    val_split: str = "val"
+    max_depth: float = 80.0
+    pictures: int = 3
+    threads: int | None = None
+    scale_range: tuple[float, float] = (1.0, 1.0)
+    jitter: float = 0.2
+    selfsup: SelfSupSettings | None = None
+
+    #: Fields that may change when a run is resumed (they do not alter the maths).
+    RESUMABLE = ("epochs", "max_steps", "workers", "device", "threads", "pictures")
+
+    @property
+    def self_supervised(self) -> bool:
+        return self.selfsup is not None
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["crop"] = list(self.crop) if self.crop is not None else None
+        d["scale_range"] = list(self.scale_range)
+        d["selfsup"] = self.selfsup.to_dict() if self.selfsup is not None else None
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> TrainConfig:
+        names = {f.name for f in fields(cls)}
+        kw = {k: v for k, v in d.items() if k in names}
+        if kw.get("crop") is not None:
+            kw["crop"] = tuple(int(v) for v in kw["crop"])
+        if "scale_range" in kw:
+            kw["scale_range"] = tuple(float(v) for v in kw["scale_range"])
+        if kw.get("selfsup") is not None:
+            kw["selfsup"] = SelfSupSettings.from_dict(kw["selfsup"])
+        return cls(**kw)
+
+    def validate(self) -> None:
+        """Raise :class:`ParameterError` (naming the setting) for a bad or inconsistent value."""
+        if self.input_mode not in INPUT_CHANNELS:
+            raise ParameterError(
+                f"unknown input mode {self.input_mode!r}; choose one of {sorted(INPUT_CHANNELS)}",
+                param="input_mode",
+            )
+        if self.loss not in LOSSES:
+            raise ParameterError(
+                f"unknown loss {self.loss!r}; choose one of {sorted(LOSSES)}", param="loss"
+            )
+        if self.lr_schedule not in ("constant", "step", "cosine"):
+            raise ParameterError(
+                f"unknown learning-rate schedule {self.lr_schedule!r}; "
+                "choose constant, step or cosine",
+                param="lr_schedule",
+            )
+        if self.lr_step < 1 or not 0 < self.lr_gamma <= 1:
+            raise ParameterError(
+                f"need lr_step >= 1 and 0 < lr_gamma <= 1, got {self.lr_step}, {self.lr_gamma}",
+                param="lr_gamma" if self.lr_step >= 1 else "lr_step",
+            )
+        if self.optimizer not in ("adam", "sgd"):
+            raise ParameterError(
+                f"unknown optimizer {self.optimizer!r}; choose adam or sgd", param="optimizer"
+            )
+        for name in ("epochs", "batch_size", "width"):
+            if int(getattr(self, name)) < 1:
+                raise ParameterError(f"{name} must be >= 1, got {getattr(self, name)}", param=name)
+        if not (self.lr > 0 and math.isfinite(self.lr)):
+            raise ParameterError(f"learning rate must be positive, got {self.lr}", param="lr")
+        if self.max_steps is not None and self.max_steps < 1:
+            raise ParameterError(f"max_steps must be >= 1, got {self.max_steps}", param="max_steps")
+        if self.workers < 0:
+            raise ParameterError(f"workers must be >= 0, got {self.workers}", param="workers")
+        if not (self.max_depth > 0 and math.isfinite(self.max_depth)):
+            raise ParameterError(
+                f"max_depth must be positive, got {self.max_depth}", param="max_depth"
+            )
+        if self.pictures < 0:
+            raise ParameterError(f"pictures must be >= 0, got {self.pictures}", param="pictures")
+        if self.crop is not None and (len(self.crop) != 2 or min(self.crop) < 1):
+            raise ParameterError(
+                f"crop must be two positive sizes (H, W), got {self.crop}", param="crop"
+            )
+        resolve_device(self.device)
+        if self.selfsup is not None:
+            self.selfsup.validate()
+            if self.final_layer:
+                raise ParameterError(
+                    "the final adjustment layer works on metric depth; self-supervised "
+                    "training predicts disparity: leave --final-layer off",
+                    param="final_layer",
+                )
+            if self.scale_range != (1.0, 1.0):
+                raise ParameterError(
+                    "scale augmentation changes the geometry between frames: not available "
+                    "in self-supervised training",
+                    param="scale_range",
+                )
+
+
+def _flat(config: TrainConfig) -> dict:
+    """The configuration with the self-supervised settings as ``selfsup.NAME`` entries."""
+    d = config.to_dict()
+    nested = d.pop("selfsup")
+    d["self_supervised"] = nested is not None
+    for k, v in (nested or {}).items():
+        d[f"selfsup.{k}"] = v
+    return d
+
+
+def resumed_config(
+    config: TrainConfig, saved: TrainConfig, explicit: set[str] | None
+) -> TrainConfig:
+    """The saved configuration of a run, with the fields that may change taken from ``config``.
+
+    Parameters
+    ----------
+    config : TrainConfig
+        What the caller asked for now.
+    saved : TrainConfig
+        The run's configuration (from its checkpoint).
+    explicit : set of str, optional
+        Fields the user set explicitly (``selfsup.NAME`` for self-supervised settings,
+        ``self_supervised`` for the mode); only those are compared. Default: every field
+        that is not resumable.
+
+    Raises
+    ------
+    ParameterError
+        An explicitly given setting differs from the run's (naming the setting).
+    """
+    mine, theirs = _flat(config), _flat(saved)
+    check = explicit if explicit is not None else set(mine) - set(TrainConfig.RESUMABLE)
+    for name in sorted(check):
+        if name in TrainConfig.RESUMABLE or name in ("dataset", "out_dir"):
+            continue
+        if name not in theirs:  # a field this run's version did not have
+            continue
+        if mine.get(name) != theirs[name]:
+            if name == "input_mode":
+                raise ParameterError(
+                    f"the run in {config.out_dir} was trained with input mode "
+                    f"'{theirs[name]}', not '{mine[name]}': a checkpoint cannot change its "
+                    "input mode",
+                    param="input_mode",
+                )
+            if name == "self_supervised":
+                kind = "self-supervised" if theirs[name] else "supervised"
+                raise ParameterError(
+                    f"the run in {config.out_dir} is a {kind} run: --resume cannot change "
+                    "the kind of training",
+                    param="self_supervised",
+                )
+            raise ParameterError(
+                f"--resume continues the run's own settings: {name} is {theirs[name]!r} "
+                f"there, not {mine.get(name)!r}",
+                param=name.split(".")[-1],
+            )
+    return replace(
+        saved,
+        dataset=config.dataset,
+        out_dir=config.out_dir,
+        **{name: getattr(config, name) for name in TrainConfig.RESUMABLE},
+    )
+
+
+def epoch_lr(config: TrainConfig, epoch: int) -> float:
+    """Learning rate of (0-based) ``epoch``: a pure function of the configuration and epoch.
+
+    ``constant``: ``lr``; ``step``: ``lr * lr_gamma ** (epoch // lr_step)`` (Ma & Karaman);
+    ``cosine``: from ``lr`` down to ``lr / 100`` over ``epochs`` (so a resumed run with a larger
+    ``epochs`` follows a new, longer schedule).
+    """
+    if config.lr_schedule == "step":
+        return config.lr * config.lr_gamma ** (epoch // config.lr_step)
+    if config.lr_schedule == "cosine":
+        t = min(epoch / max(config.epochs - 1, 1), 1.0)
+        return config.lr * (0.01 + 0.99 * 0.5 * (1.0 + math.cos(math.pi * t)))
+    return config.lr
