@@ -114,7 +114,8 @@ def reference_plpp(points, M, width, height, line_spec=(5, 7, 9, 11), W=1024, H=
 
 
 def main() -> None:
-    from sparsetools.ops.beams import elevation_rings, load_sensor_profile, select_beams
+    from sparsetools.io.sensor_profile import load_sensor_profile
+    from sparsetools.ops.beams import elevation_rings, select_beams
 
     points, calib, name = load_frame()
     print(f"frame: {name}, {points.shape[0]} points")

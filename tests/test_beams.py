@@ -10,13 +10,12 @@ import pytest
 
 from sparsetools.calibration import Calibration
 from sparsetools.errors import FormatError, ParameterError
+from sparsetools.io.sensor_profile import load_sensor_profile
 from sparsetools.ops.beams import (
     HORIZON_TARGETS_DEG,
     column_rings,
     elevation_rings,
-    fit_sensor_profile,
     horizon_rings,
-    load_sensor_profile,
     pl_line_spec,
     pl_sparsify_index,
     recover_rings,
@@ -27,6 +26,7 @@ from sparsetools.ops.beams import (
     select_beams,
     uniform_rings,
 )
+from sparsetools.ops.lidar_profile import fit_sensor_profile
 
 REAL = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "real"
 KITTI = REAL / "kitti-object-kuixu"
@@ -92,7 +92,7 @@ def test_fallback_to_elevation_warns_and_matches(caplog):
     rng = np.random.default_rng(3)
     pts, truth = cone_scan(rng)
     perm = rng.permutation(pts.shape[0])
-    with caplog.at_level(logging.WARNING, logger="sparsetools.ops.beams"):
+    with caplog.at_level(logging.WARNING, logger="sparsetools.ops.rings"):
         ring, method = recover_rings_with_method(pts[perm])
     assert method == "elevation"
     assert "recovering rings by elevation" in caplog.text

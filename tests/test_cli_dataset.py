@@ -11,7 +11,8 @@ import pytest
 from click.testing import CliRunner
 
 from sparsetools.cli.main import cli
-from sparsetools.io.dataset import MANIFEST_NAME, DatasetReader
+from sparsetools.io.dataset import MANIFEST_NAME
+from sparsetools.io.dataset_reader import DatasetReader
 from sparsetools.io.image import write_depth_png, write_image
 
 W, H = 32, 16
@@ -20,7 +21,7 @@ W, H = 32, 16
 def tree_hash(folder: Path) -> str:
     h = hashlib.sha256()
     for p in sorted(folder.rglob("*")):
-        if p.is_file():
+        if p.is_file() and ".sparsetools" not in p.parts:  # the run record holds timings
             h.update(p.relative_to(folder).as_posix().encode())
             h.update(p.read_bytes())
     return h.hexdigest()
@@ -76,21 +77,8 @@ def build_args(inputs, out, *extra):
 def test_build_info_verify(inputs, tmp_path):
     out = tmp_path / "ds"
     before = tree_hash(inputs)
-    res = run(
-        build_args(
-            inputs,
-            out,
-            "--json",
-            "--split",
-            "0.5,0.25,0.25",
-            "--seed",
-            "3",
-            "--source",
-            "lidar-64",
-            "--params",
-            '{"beams": 64}',
-        )
-    )
+    settings = ("--split", "0.5,0.25,0.25", "--seed", "3", "--source", "lidar-64")
+    res = run(build_args(inputs, out, "--json", *settings, "--params", '{"beams": 64}'))
     assert res.exit_code == 0, res.output
     summary = json.loads(res.stdout)
     assert summary["samples"] == 8 and summary["processed"] == 8 and summary["sequences"] == 4
@@ -111,16 +99,18 @@ def test_build_info_verify(inputs, tmp_path):
     assert res.exit_code == 0, res.output
     assert "schema version" in res.stdout and "train" in res.stdout and f"{W}x{H} (8)" in res.stdout
     info = json.loads(run(["dataset", "info", out, "--json"]).stdout)
-    assert info["schema_version"] == 1 and info["splits"]["train"]["samples"] == 4
+    assert info["schema_version"] == 2 and info["splits"]["train"]["samples"] == 4
     assert info["with_intrinsics"] == 8 and info["sources"] == {"lidar-64": 8}
     assert info["bytes"]["rgb"] > 0 and info["density_percent"]["max"] <= 100
 
     res = run(["dataset", "verify", out])
     assert res.exit_code == 0 and "no problem" in res.stdout
 
-    # a rerun resumes: nothing to do
-    res = run(build_args(inputs, out, "--json"))
+    # a rerun resumes: nothing to do; other settings are refused, naming the first that differs
+    res = run(build_args(inputs, out, "--json", *settings, "--params", '{"beams": 64}'))
     assert res.exit_code == 0 and json.loads(res.stdout)["skipped_existing"] == 8
+    res = run(build_args(inputs, out, *settings))
+    assert res.exit_code == 1 and "made with --params" in res.stderr
 
 
 def test_text_summary_and_workers(inputs, tmp_path):
@@ -203,5 +193,7 @@ def test_split_file_option_and_link(inputs, tmp_path):
     assert summary["splits"] == {"holdout": 1, "train": 3}
     assert summary["unmatched"]["not_in_split_files"] == 4
     src = inputs / "rgb" / "s1" / "0000.png"
-    assert (out / "rgb" / "s1" / "0000.png").stat().st_ino == src.stat().st_ino
+    # --link: reflink where possible, else a copy; never the input's own inode
+    assert (out / "rgb" / "s1" / "0000.png").stat().st_ino != src.stat().st_ino
+    assert (out / "rgb" / "s1" / "0000.png").read_bytes() == src.read_bytes()
     assert DatasetReader(out).split("holdout").ids == ["s3/0001"]

@@ -56,7 +56,8 @@ def test_debug_shows_the_exception(monkeypatch):
 
     _add_command(monkeypatch, boom)
     r = CliRunner().invoke(cli, ["--debug", "boom"])
-    assert r.exit_code == 1 and isinstance(r.exception, FormatError)
+    assert r.exit_code == 1 and r.stderr.startswith("Error: bad")
+    assert "Traceback" in r.stderr and "FormatError: bad" in r.stderr
 
 
 def test_usage_error_is_exit_2():

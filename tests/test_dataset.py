@@ -19,22 +19,30 @@ from sparsetools.errors import FormatError, FrameError, OutputError, ParameterEr
 from sparsetools.io.dataset import (
     MANIFEST_NAME,
     METADATA_VERSION_KEY,
-    DatasetReader,
     check_relative_path,
     read_manifest,
     resolve_in_dataset,
     write_manifest,
 )
+from sparsetools.io.dataset_reader import DatasetReader
 from sparsetools.io.image import read_depth_png, read_image, write_depth_png, write_image
-from sparsetools.pipeline import LocalExecutor
+from sparsetools.pipeline import Batch
 from sparsetools.pipeline.dataset import (
     assign_splits,
-    build_dataset,
     match_split_lines,
     parse_split_fractions,
     read_split_file,
     verify_dataset,
 )
+
+
+def build_dataset(out, *, progress=False, workers=1, overwrite=False, on_error="stop", **kw):
+    """``pipeline.dataset.build_dataset`` with the batch options spelt out, summary as a dict."""
+    from sparsetools.pipeline.dataset import build_dataset as _build
+
+    batch = Batch(workers=workers, overwrite=overwrite, on_error=on_error, progress=progress)
+    return _build(out, batch=batch, **kw).as_dict()
+
 
 REAL = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "real"
 W, H = 40, 24
@@ -206,7 +214,7 @@ def test_manifest_readable_by_installed_dataframe_libraries(inputs, tmp_path):
     build(inputs, out)
     path = out / MANIFEST_NAME
     t = pq.read_table(path)  # pyarrow always
-    assert t.num_rows == 9 and t.schema.metadata[METADATA_VERSION_KEY] == b"1"
+    assert t.num_rows == 9 and t.schema.metadata[METADATA_VERSION_KEY] == b"2"
     ids = sorted(t.column("id").to_pylist())
     if importlib.util.find_spec("pandas"):
         import pandas as pd
@@ -226,7 +234,7 @@ def test_manifest_readable_by_installed_dataframe_libraries(inputs, tmp_path):
 
 def test_workers_give_identical_manifest(inputs, tmp_path):
     build(inputs, tmp_path / "a")
-    build(inputs, tmp_path / "b", executor=LocalExecutor(2))
+    build(inputs, tmp_path / "b", workers=2)
     ta = pq.read_table(tmp_path / "a" / MANIFEST_NAME)
     tb = pq.read_table(tmp_path / "b" / MANIFEST_NAME)
     assert ta.equals(tb)
@@ -483,22 +491,25 @@ def test_overwrite_rebuilds_given_frames_and_rewrites_parts(inputs, tmp_path):
     assert verify_dataset(out)["problems"] == []
 
 
-def test_overwrite_of_some_frames_keeps_other_rows_in_a_rewritten_part(tmp_path):
+def test_overwrite_keeps_only_this_runs_frames(tmp_path):
     inputs = make_inputs(tmp_path / "in", sequences=("a", "b"), frames=2, conf=False, calib=False)
     out = tmp_path / "ds"
     build(inputs, out)
     for sub in ("rgb", "sparse", "gt"):
         shutil.rmtree(inputs / sub / "b")
     np.save(inputs / "sparse" / "a/000000.npy", np.full((H, W), 7.5, np.float32))
-    build(inputs, out, overwrite=True)
+    summary = build(inputs, out, overwrite=True)
+    # --overwrite replaces the folder's results: the frames of the earlier run that this run
+    # does not make (sequence b) are removed, rows and files, so no settings are mixed.
+    assert summary["removed_stale"] > 0
     ds = DatasetReader(out)
-    assert len(ds) == 4
+    assert len(ds) == 2 and sorted(ds.manifest.column("id").to_pylist()) == ["a/000000", "a/000001"]
     assert float(ds.sample("a/000000")["sparse"][5, 5]) == 7.5
     src = np.load(tmp_path / "in" / "sparse" / "a/000001.npy")
     assert ds.sample("a/000001")["sparse"].tobytes() == src.tobytes()
-    assert ds.row("b/000001")["sparse_parquet"] != ds.row("a/000000")["sparse_parquet"]
+    assert not list((out / "rgb").rglob("b/*"))
     assert verify_dataset(out)["problems"] == []
-    assert len(list((out / "sparse").glob("part-*.parquet"))) == 2
+    assert len(list((out / "sparse").glob("part-*.parquet"))) == 1
 
 
 def test_resume_after_interrupted_run(inputs, tmp_path):
@@ -527,14 +538,25 @@ def test_on_error_skip_writes_the_good_frames(inputs, tmp_path):
     assert verify_dataset(tmp_path / "ds")["problems"] == []
 
 
-def test_link_mode_hard_links(inputs, tmp_path):
+def test_link_mode_never_lets_the_dataset_alter_an_input(inputs, tmp_path):
+    from sparsetools.pipeline.dataset.staging import _clone
+
     out = tmp_path / "ds"
-    summary = build(inputs, out, link=True, sparse_format="parquet")
     src = inputs / "rgb" / "seqA" / "000000.png"
+    os.chmod(src, 0o444)
+    before = (src.read_bytes(), os.stat(src).st_mode, os.stat(src).st_nlink)
+    summary = build(inputs, out, link=True, sparse_format="parquet")
     dst = out / "rgb" / "seqA" / "000000.png"
-    assert summary["linked"] == 27  # rgb, gt, confidence of 9 frames
-    assert os.stat(src).st_ino == os.stat(dst).st_ino
-    assert verify_dataset(out)["problems"] == []
+    # reflinks where the file system has them (btrfs, XFS), plain copies elsewhere (ext4)
+    probe = tmp_path / "probe"
+    reflinks = _clone(str(src), probe)
+    assert summary["linked"] == (27 if reflinks else 0)  # rgb, gt, confidence of 9 frames
+    assert not dst.is_symlink() and os.stat(src).st_ino != os.stat(dst).st_ino
+    assert dst.read_bytes() == before[0]
+    os.chmod(dst, 0o600)
+    dst.write_bytes(b"changed in the dataset")
+    assert (src.read_bytes(), os.stat(src).st_mode, os.stat(src).st_nlink) == before
+    os.chmod(src, 0o644)
 
 
 # -- verify -----------------------------------------------------------------------------------------------
@@ -646,7 +668,7 @@ def test_bad_inputs(inputs, tmp_path):
             sparse=inputs / "gt" / "seqA" / "000000.png",
             progress=False,
         )
-    with pytest.raises(ParameterError, match="sparse format"):
+    with pytest.raises(ParameterError, match="--sparse-format"):
         build(inputs, tmp_path / "x", sparse_format="tiff")
     with pytest.raises(ParameterError, match="not both"):
         build(inputs, tmp_path / "x", split="0.5,0.5", split_files=["a"])

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -26,7 +25,6 @@ from sparsetools.ops.noise import (
     sample_noise_params,
 )
 
-REAL = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "real"
 K = np.array([[200.0, 0.0, 79.5], [0.0, 200.0, 29.5], [0.0, 0.0, 1.0]])
 
 
@@ -365,21 +363,22 @@ def test_bank_is_deterministic_and_cached(tmp_path):
         assert abs(rows.mean() - 31.5) <= 1.0 and abs(cols.mean() - 31.5) <= 1.0
         assert lum[0].max() < 0.05 and lum[:, -1].max() < 0.05
     # In memory: the same object; on disk: written once, then loaded with identical arrays.
-    m1 = flare_bank(seed=3, count=3, size=64, cache_dir=tmp_path)
-    assert flare_bank(seed=3, count=3, size=64, cache_dir=tmp_path) is m1
+    from sparsetools.io.flare_bank import _cached, cached_flare_bank
+
+    assert flare_bank(seed=3, count=3, size=64) is flare_bank(seed=3, count=3, size=64)
+    m1 = cached_flare_bank(tmp_path, seed=3, count=3, size=64)
+    assert cached_flare_bank(tmp_path, seed=3, count=3, size=64) is m1
     files = list(tmp_path.glob("flare-bank-*.npz"))
     assert len(files) == 1
-    from sparsetools.ops.flare import _cached_bank
-
-    _cached_bank.cache_clear()
-    m2 = flare_bank(seed=3, count=3, size=64, cache_dir=tmp_path)
+    _cached.cache_clear()
+    m2 = cached_flare_bank(tmp_path, seed=3, count=3, size=64)
     assert m2 is not m1
     np.testing.assert_array_equal(m2.patterns, a.patterns)
     assert not m2.patterns.flags.writeable
     # A corrupt cache file is rebuilt, not trusted.
     files[0].write_bytes(b"garbage")
-    _cached_bank.cache_clear()
-    m3 = flare_bank(seed=3, count=3, size=64, cache_dir=tmp_path)
+    _cached.cache_clear()
+    m3 = cached_flare_bank(tmp_path, seed=3, count=3, size=64)
     np.testing.assert_array_equal(m3.patterns, a.patterns)
 
 
@@ -459,10 +458,9 @@ def test_bad_params(kwargs, match):
 # ----------------------------------------------------------------- real KITTI depth
 
 
-def test_real_kitti_depth_flares_within_20m():
-    folder = REAL / "kitti-depth-gt-metric3d"
-    if not folder.is_dir():
-        pytest.skip(f"real sample data not present at {folder}")
+@pytest.mark.real
+def test_real_kitti_depth_flares_within_20m(real_dir):
+    folder = real_dir / "kitti-depth-gt-metric3d"
     from sparsetools.io.image import read_depth_png, read_image
 
     img = read_image(folder / "rgb" / "0000000050.png")
@@ -472,3 +470,174 @@ def test_real_kitti_depth_flares_within_20m():
         assert rec.flare_source == "depth"
         assert all(0 < depth[f.v, f.u] <= 20 for f in rec.flares)
         assert night.mean() < img.mean() * 1.02 + 2
+
+
+# ----------------------------------------------------------------- ELD camera tables
+
+
+def _package_tables() -> dict:
+    """The shipped JSON, read here independently of sparsetools.ops.noise."""
+    from importlib.resources import files
+
+    return json.loads((files("sparsetools") / "data" / "eld_cameras.json").read_text("utf-8"))
+
+
+def _check_profile_against_table(prof, entry):
+    fits = entry["Profile-1"]
+    assert prof.gain_range == (entry["Kmin"], entry["Kmax"])
+    assert (prof.read_slope, prof.read_bias, prof.read_sigma) == tuple(
+        fits["G_scale"][k] for k in ("slope", "bias", "sigma")
+    )
+    assert (prof.gaussian_slope, prof.gaussian_bias, prof.gaussian_sigma) == tuple(
+        fits["g_scale"][k] for k in ("slope", "bias", "sigma")
+    )
+    assert (prof.row_slope, prof.row_bias, prof.row_sigma) == tuple(
+        fits["R_scale"][k] for k in ("slope", "bias", "sigma")
+    )
+    assert prof.tukey_lambdas == tuple(entry["G_shape"])
+    assert prof.color_bias == tuple(tuple(r) for r in entry["color_bias"])
+
+
+def test_profiles_are_the_shipped_tables_with_attribution():
+    doc = _package_tables()
+    assert "Wei" in doc["attribution"]["paper"] and "MIT" in doc["attribution"]["license"]
+    assert "39846c79b5bcb406881c52700d282a9c1149666e" in doc["attribution"]["source_commit"]
+    assert sorted(CAMERA_PROFILES) == sorted(doc["cameras"])
+    for name, entry in doc["cameras"].items():
+        _check_profile_against_table(CAMERA_PROFILES[name], entry)
+        assert CAMERA_PROFILES[name].saturation == entry["saturation_dn"]
+    # The issue's numbers: SonyA7S2 Gaussian fit 0.5407 / 1.2182 vs Tukey 0.4621 / 0.5657.
+    sony = CAMERA_PROFILES["SonyA7S2"]
+    assert round(sony.gaussian_slope, 4) == 0.5407 and round(sony.gaussian_bias, 4) == 1.2182
+    assert round(sony.read_slope, 4) == 0.4621 and round(sony.read_bias, 4) == 0.5657
+
+
+@pytest.mark.real
+def test_profiles_equal_the_released_eld_tables(real_dir):
+    src = json.loads(
+        (real_dir / "eld-camera-params" / "eld_camera_params_DERIVED.json").read_text()
+    )
+    assert sorted(src) == sorted(CAMERA_PROFILES)
+    for name, entry in src.items():
+        _check_profile_against_table(CAMERA_PROFILES[name], entry)
+
+
+def test_sampling_uses_the_tables():
+    rng = np.random.default_rng(3)
+    for name, prof in CAMERA_PROFILES.items():
+        eld = [sample_noise_params(rng, camera=name, color_bias=True) for _ in range(2000)]
+        rows = np.array([d.table_row for d in eld])
+        # lambda is one of the fitted shapes, of the drawn row, rows drawn uniformly
+        assert all(d.tukey_lambda == prof.tukey_lambdas[d.table_row] for d in eld)
+        counts = np.bincount(rows, minlength=len(prof.tukey_lambdas))
+        assert counts.min() > 0.5 * counts.mean() and len(counts) == len(prof.tukey_lambdas)
+        # colour bias of the same row: R, mean of the two greens, B
+        for d in eld[:50]:
+            r, g1, b, g2 = prof.color_bias[d.table_row]
+            assert d.color_bias == (r, 0.5 * (g1 + g2), b)
+        # Gaussian read noise follows the separate g_scale fit, not the Tukey one.
+        gauss = [sample_noise_params(rng, camera=name, model="gaussian") for _ in range(3000)]
+        logk = np.log([d.system_gain for d in gauss])
+        res = np.log([d.sigma_read for d in gauss]) - (prof.gaussian_slope * logk
+                                                        + prof.gaussian_bias)  # fmt: skip
+        assert abs(res.mean()) < 0.03
+        assert res.std() == pytest.approx(prof.gaussian_sigma, rel=0.08)
+        assert all(d.color_bias == (0.0, 0.0, 0.0) for d in gauss)
+
+
+def test_model_and_color_bias_do_not_change_the_other_draws():
+    a = sample_noise_params(np.random.default_rng(9), model="eld")
+    b = sample_noise_params(np.random.default_rng(9), model="gaussian", color_bias=True)
+    for key in ("system_gain", "ratio", "sigma_row", "seed", "table_row", "tukey_lambda"):
+        assert getattr(a, key) == getattr(b, key), key
+    assert a.sigma_read != b.sigma_read and any(b.color_bias)
+
+
+def test_color_bias_shifts_each_channel_mean_only():
+    bias = (3.0, -2.0, 0.5)
+    x = np.full((300, 300, 3), 200.0)
+    plain = _noise(seed=4)
+    biased = NoiseParams(**{**plain.to_dict(), "color_bias": bias})
+    z0, z1 = add_sensor_noise(x, plain), add_sensor_noise(x, biased)
+    np.testing.assert_allclose(z1 - z0, np.broadcast_to(bias, x.shape), atol=1e-9)
+    grey = add_sensor_noise(x[:, :, 0], biased) - add_sensor_noise(x[:, :, 0], plain)
+    np.testing.assert_allclose(grey, np.mean(bias), atol=1e-9)
+    assert float(noise_variance(200.0, biased)) == float(noise_variance(200.0, plain))
+    with pytest.raises(ParameterError, match="color_bias"):
+        NoiseParams.from_dict({**plain.to_dict(), "color_bias": [1.0, 2.0]})
+
+
+def test_lowlight_color_bias_option_is_recorded_and_replayed():
+    img = _day()
+    p = LowLightParams(flare=False, color_bias=True, camera="CanonEOS700D", ratio=(32, 32))
+    night, rec = lowlight(img, rng=2, params=p)
+    prof = CAMERA_PROFILES["CanonEOS700D"]
+    assert rec.noise.color_bias == prof.rgb_bias(rec.noise.table_row)
+    again, _ = lowlight(img, record=json.loads(rec.to_json()))
+    np.testing.assert_array_equal(again, night)
+    without, rec0 = lowlight(img, rng=2, params=LowLightParams(flare=False, camera="CanonEOS700D",
+                                                               ratio=(32, 32)))  # fmt: skip
+    assert rec0.noise.color_bias == (0.0, 0.0, 0.0) and rec0.noise.seed == rec.noise.seed
+    assert not np.array_equal(without, night)  # the same noise, shifted by the offsets
+    assert rec.summary()["color_bias"] == list(rec.noise.color_bias)
+    with pytest.raises(ParameterError, match="color_bias"):
+        LowLightParams(color_bias="yes")
+
+
+def test_records_from_before_the_tables_still_replay():
+    """A record without color_bias / table_row (layout of the first release) replays as is."""
+    img = _day()
+    _, rec = lowlight(img, rng=6, params=LowLightParams(noise="eld", flare=False))
+    old = rec.to_dict()
+    del old["noise"]["color_bias"], old["noise"]["table_row"]
+    old["noise"]["tukey_lambda"] = 0.0123  # a uniform draw, not one of the table's shapes
+    again, rec2 = lowlight(img, record=old)
+    assert rec2.noise.table_row == -1 and rec2.noise.color_bias == (0.0, 0.0, 0.0)
+    redo = NoiseParams(**{**rec.noise.to_dict(), "tukey_lambda": 0.0123})
+    expected, _ = lowlight(img, record={**rec.to_dict(), "noise": redo.to_dict()})
+    np.testing.assert_array_equal(again, expected)
+
+
+def test_own_camera_tables_file(tmp_path):
+    from sparsetools.errors import FormatError
+    from sparsetools.io.camera_tables import read_camera_tables
+
+    doc = _package_tables()
+    mine = dict(
+        doc["cameras"]["SonyA7S2"], Kmin=1.0, Kmax=1.0, G_shape=[0.05], color_bias=[[1, 2, 3, 4]]
+    )
+    path = tmp_path / "mine.json"
+    path.write_text(json.dumps({"cameras": {"MyCam": mine}}))
+    prof = read_camera_tables(path)["MyCam"]
+    assert prof.gain_range == (1.0, 1.0) and prof.tukey_lambdas == (0.05,)
+    d = sample_noise_params(np.random.default_rng(0), camera=prof, color_bias=True)
+    assert (d.camera, d.system_gain, d.tukey_lambda, d.color_bias) == ("MyCam", 1.0, 0.05,
+                                                                       (1.0, 3.0, 3.0))  # fmt: skip
+    # The shipped file reads the same as the built-in profiles.
+    from importlib.resources import files
+
+    assert read_camera_tables(files("sparsetools") / "data" / "eld_cameras.json") == dict(
+        CAMERA_PROFILES
+    )
+    for text, match in (
+        ("{", "cannot read"),
+        ('{"cameras": {}}', "non-empty"),
+        ('{"cameras": {"X": {"Kmin": 1}}}', "missing"),
+        (json.dumps({"cameras": {"X": {**mine, "G_shape": [0.1, 0.2]}}}), "rows"),
+        (
+            json.dumps({"cameras": {"X": {**mine, "Kmax": float("nan")}}}).replace("NaN", '"x"'),
+            "bad value",
+        ),
+    ):
+        path.write_text(text)
+        with pytest.raises(FormatError, match=match):
+            read_camera_tables(path)
+    with pytest.raises(FormatError, match="no such"):
+        read_camera_tables(tmp_path / "absent.json")
+
+
+def test_python_tables_equal_the_shipped_json():
+    """ops/ reads no file: its copy of ELD's tables must equal data/eld_cameras.json."""
+    from sparsetools.ops.eld_tables import ELD_CAMERAS
+
+    assert ELD_CAMERAS == _package_tables()["cameras"]

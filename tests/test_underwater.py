@@ -8,6 +8,7 @@ import itertools
 import math
 import tracemalloc
 import weakref
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -156,20 +157,22 @@ def test_segments_give_the_single_pass_result():
     seafloor, water = _random_sequence(T=23, seed=5)
     full_comp = UnderwaterCompensator(water, window=7)
     full = [a for a, _ in full_comp.process(seafloor)]
-    files = [type("F", (), {"stem": f"{i:03d}"})() for i in range(len(seafloor))]
-    tasks = underwater_tasks(files, "out", window=7, settings={})
+    from sparsetools.io.sources import Frame, FrameKey
+
+    frames = [Frame(FrameKey("", f"{i:03d}"), image=Path(f"{i:03d}.png")) for i in range(23)]
+    tasks = underwater_tasks(frames, "out", window=7, a_ref=(1.0, 1.0, 1.0))
     import sparsetools.pipeline.underwater as uw
 
     seg = uw.segment_length(7)
     done = 0
     for k, t in enumerate(tasks):
         s = k * seg
-        lo = s - t.inputs["emit"][0]
-        hi = lo + len(t.inputs["paths"])
+        lo = s - t.inputs.emit[0]
+        hi = lo + len(t.inputs.paths)
         comp = UnderwaterCompensator.from_backscatter(
             full_comp.backscatter, window=7, a_ref=full_comp.a_ref
         )
-        out = [a for a, _ in comp.process(seafloor[lo:hi], emit=tuple(t.inputs["emit"]))]
+        out = [a for a, _ in comp.process(seafloor[lo:hi], emit=tuple(t.inputs.emit))]
         for j, a in enumerate(out):
             np.testing.assert_array_equal(a, full[s + j])
         done += len(out)

@@ -6,6 +6,7 @@ import pytest
 from click.testing import CliRunner
 
 from sparsetools.cli.main import cli
+from sparsetools.cli.pipeline import run_command
 from sparsetools.errors import FormatError, ParameterError
 from sparsetools.pipeline.workflow import load_workflow, run_workflow
 
@@ -60,7 +61,7 @@ def test_run_writes_report_and_stops_at_failure(tmp_path):
     )
     wf = load_workflow(tmp_path / "c.yaml", out_dir=tmp_path / "o")
     with pytest.raises(ParameterError, match="step 'broken' failed"):
-        run_workflow(wf, tmp_path / "o", echo=lambda s: None)
+        run_workflow(wf, tmp_path / "o", run_command=run_command, echo=lambda s: None)
     report = (tmp_path / "o" / "report.md").read_text()
     assert "## scene" in report and "## broken" in report and "## never" not in report
     assert (tmp_path / "o" / "scene" / "velodyne" / "000000.bin").is_file()

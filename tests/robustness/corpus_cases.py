@@ -201,19 +201,19 @@ def _(tmp):
     return Setup(_project(tmp, cloud_path=bad), check=check)
 
 
-@case("project/cloud-unknown-suffix", match="unknown point-cloud format")
+@case("project/cloud-unknown-suffix", match="is not a .bin/.pcd/.ply/.npy file")
 def _(tmp):
     bad = write(IN(tmp) / "c" / "000000.xyz", b"1 2 3\n")
     return Setup(_project(tmp, cloud_path=bad))
 
 
-@case("project/folder-without-clouds", match="no point clouds")
+@case("project/folder-without-clouds", match="no *.bin/*.pcd/*.ply/*.npy files in")
 def _(tmp):
     write(IN(tmp) / "c" / "readme.txt", "nothing here")
     return Setup(_project(tmp, cloud_path=IN(tmp) / "c"))
 
 
-@case("project/cloud-dangling-symlink-in-folder", match="no point clouds")
+@case("project/cloud-dangling-symlink-in-folder", match="no *.bin/*.pcd/*.ply/*.npy files in")
 def _(tmp):
     (IN(tmp) / "c").mkdir(parents=True)
     (IN(tmp) / "c" / "000000.bin").symlink_to(tmp / "nowhere.bin")
@@ -288,7 +288,7 @@ def _(tmp):
     return Setup(_project(tmp, calib=IN(tmp) / "cal"))
 
 
-@case("project/calib-folder-without-calibrations", match="neither per-frame calib files")
+@case("project/calib-folder-without-calibrations", match="--calib: no *.txt/*.json files in")
 def _(tmp):
     write(IN(tmp) / "cal" / "notes.md", "x")
     return Setup(_project(tmp, calib=IN(tmp) / "cal"))
@@ -326,7 +326,7 @@ def _(tmp):
     return Setup(_project(tmp, "--image-size", f"{W}x{H}", "--crop", "1,2"))
 
 
-@case("project/negative-min-depth", expect="usage", match="must be >= 0")
+@case("project/negative-min-depth", expect="usage", match="must be a finite number >= 0")
 def _(tmp):
     return Setup(_project(tmp, "--image-size", f"{W}x{H}", "--min-depth", "-1"))
 
@@ -630,7 +630,7 @@ def _(tmp):
     return Setup(["lowlight-synth", bad, "-o", OUT(tmp)])
 
 
-@case("lowlight-synth/corrupt-record-sidecar-in-out", match="unreadable record sidecar")
+@case("lowlight-synth/corrupt-record-sidecar-in-out", match="has no record of what made it")
 def _(tmp):
     write(OUT(tmp) / "records" / "000000.json", b'{"config": ')
     return Setup(_lowlight(tmp))
@@ -657,14 +657,22 @@ _out_cases(
 # ======================================================================================
 
 
-@case("equalize/corrupt-lut-in-out", match="unreadable")
+@case("equalize/corrupt-lut-in-out", match="has no record of what made it")
 def _(tmp):
     f = good_frame(IN(tmp))
     write(OUT(tmp) / "mcie_lut.json", b"\x00\x01")
     return Setup(["equalize", f["image"], "-o", OUT(tmp)])
 
 
-@case("equalize/reference-not-an-input", match="neither a file nor the stem")
+@case("project/corrupt-run-record-in-out", match="unreadable record of what made")
+def _(tmp):
+    f = good_frame(IN(tmp))
+    write(OUT(tmp) / ".sparsetools" / "run.json", b"{not json")
+    return Setup(["project", f["cloud"], "--calib", f["calib"], "--image", f["image"], "-o",
+                  OUT(tmp)])  # fmt: skip
+
+
+@case("equalize/reference-not-an-input", match="neither a file nor the name of an input")
 def _(tmp):
     f = good_frame(IN(tmp))
     return Setup(["equalize", f["image"], "--reference", "nope", "-o", OUT(tmp)])
@@ -733,7 +741,7 @@ def _(tmp):
     return Setup(["underwater", sea, "--water", water, "--window", "4", "-o", OUT(tmp)])
 
 
-@case("underwater/corrupt-settings-in-out", match="unreadable")
+@case("underwater/corrupt-settings-in-out", match="has no record of what made it")
 def _(tmp):
     sea, water = underwater_tree(IN(tmp))
     write(OUT(tmp) / "underwater.json", b"{{{")

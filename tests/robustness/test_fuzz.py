@@ -225,8 +225,7 @@ def test_read_depth_png(tmp_path):
 
 
 def test_image_size_of(tmp_path):
-    from sparsetools.io.image import image_header_size
-    from sparsetools.io.sources import image_size_of
+    from sparsetools.io.image import image_header_size, image_size_of
 
     @FUZZ
     @given(data=bytes_or_mutation(*IMAGE_SEEDS))
@@ -341,7 +340,7 @@ def test_load_calibration_raw_folder(tmp_path):
 
 
 def test_load_sensor_profile(tmp_path):
-    from sparsetools.ops.beams import load_sensor_profile
+    from sparsetools.io.sensor_profile import load_sensor_profile
 
     valid = Path(__import__("sparsetools").__file__).parent / "data" / "hdl64e_kitti.json"
 
@@ -397,9 +396,7 @@ def nuscenes_tables(draw):
 
 def test_nuscenes_tables(tmp_path):
     from sparsetools.io.nuscenes import NuScenesTables
-    from sparsetools.pipeline.project import ProjectSettings, nuscenes_tasks
-
-    settings_ = ProjectSettings()
+    from sparsetools.io.sources import nuscenes_frames
 
     @FUZZ
     @given(tables=nuscenes_tables(), raw=st.none() | st.binary(max_size=64))
@@ -421,8 +418,7 @@ def test_nuscenes_tables(tmp_path):
                         ours_or_success(t.T_global_from_ego, sd)
                         ours_or_success(t.intrinsics, sd)
         for sensor in ("RADAR_FRONT", "CAM_FRONT"):
-            ours_or_success(nuscenes_tasks, root, tmp_path / "o", settings_, sensor=sensor,
-                            camera="CAM_FRONT", sweeps=2)  # fmt: skip
+            ours_or_success(nuscenes_frames, root, sensor=sensor, camera="CAM_FRONT", sweeps=2)
 
     check()
 
@@ -448,7 +444,7 @@ def dataset_dir(tmp_path_factory) -> Path:
 
 
 def _read_all(ds: Path) -> None:
-    from sparsetools.io.dataset import DatasetReader
+    from sparsetools.io.dataset_reader import DatasetReader
 
     reader = DatasetReader(ds)
     for i in range(len(reader)):
@@ -541,10 +537,11 @@ def test_dataset_reader_on_corrupted_sparse_part(dataset_dir, tmp_path):
 
 
 def test_dataset_staging_record(tmp_path):
-    from sparsetools.pipeline.dataset import _read_record, _write_record
+    from sparsetools.pipeline.dataset import read_record as _read_record
+    from sparsetools.pipeline.dataset import write_record
 
     p = tmp_path / "000000.rec"
-    _write_record(p, {"id": "000000", "width": 4}, (np.arange(3), np.arange(3), np.ones(3)))
+    write_record(p, {"id": "000000", "width": 4}, (np.arange(3), np.arange(3), np.ones(3)))
     seed = p.read_bytes()
 
     @FUZZ
@@ -594,7 +591,8 @@ def test_lowlight_sidecar_reader(tmp_path):
 
 
 def test_flare_bank_cache_file(tmp_path):
-    from sparsetools.ops.flare import FlareBank, _load_bank, _save_bank, build_flare_bank
+    from sparsetools.io.flare_bank import _load_bank, _save_bank
+    from sparsetools.ops.flare import FlareBank, build_flare_bank
 
     path = tmp_path / "bank.npz"
     _save_bank(path, build_flare_bank(seed=0, count=1, size=32, ghosts=1))

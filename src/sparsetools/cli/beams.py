@@ -9,11 +9,12 @@ import click
 
 from .options import (
     batch_options,
+    calib_option,
     emit_summary,
-    executor_from,
+    image_option,
     image_size_option,
     int_list,
-    progress_enabled,
+    output_dir_option,
 )
 
 _INTS = re.compile(r"^\d+(,\d+)*,?$")
@@ -129,18 +130,12 @@ def _non_negative_ints(ctx, param, value):
     metavar="WxH",
     help="pl++ grid: W azimuth bins over 90 deg, H elevation bins of 0.4*64/H deg.",
 )
-@click.option(
-    "--calib",
-    type=click.Path(exists=True, path_type=Path),
-    help="Calibration (file, KITTI raw folder, or per-frame folder matched by stem): "
-    "reports the projected map's density per N; needed by pl++.",
+@calib_option(
+    help="Calibration (file, KITTI raw folder, or per-frame folder matched by frame): "
+    "reports the projected map's density per N; needed by pl++."
 )
 @image_size_option
-@click.option(
-    "--image",
-    type=click.Path(exists=True, path_type=Path),
-    help="Image (or folder matched by stem) giving the map size.",
-)
+@image_option
 @click.option(
     "--format",
     "fmt",
@@ -161,14 +156,7 @@ def _non_negative_ints(ctx, param, value):
     is_flag=True,
     help="Only print each cloud's ring table (ring, points, median elevation).",
 )
-@click.option(
-    "-o",
-    "--out",
-    "out_dir",
-    type=click.Path(path_type=Path),
-    default=None,
-    help="Output folder (created; existing complete outputs are skipped unless --overwrite).",
-)
+@output_dir_option(required=False)
 @batch_options
 def beams(
     clouds,
@@ -187,18 +175,15 @@ def beams(
     far_range,
     report,
     out_dir,
-    workers,
-    overwrite,
-    on_error,
-    executor,
-    dask_scheduler,
-    as_json,
+    batch,
 ):
     """Keep 1-32 beams of 64-beam LiDAR scans (all columns of the kept points).
 
-    CLOUD may be files or folders (.bin KITTI, .pcd.bin nuScenes, .npy, .pcd). Rings are
-    recovered from the scan order (ring 0 = highest laser); the same lasers are kept on
-    every frame.
+    CLOUD may be files or folders (.bin KITTI, .pcd.bin nuScenes, .npy, .pcd), KITTI raw
+    drives or date folders, or a KITTI object root. Rings are recovered from the scan order
+    (ring 0 = highest laser); the same lasers are kept on every frame. Writes
+    OUT/<sequence>/<frame>.bin (OUT/n<N>/<sequence>/<frame>.bin for several N); a flat
+    folder of clouds has no <sequence>/ level.
 
     \b
     Examples:
@@ -207,8 +192,10 @@ def beams(
           --image kitti/image_2 -o out/beams
       sparsetools beams kitti/velodyne --select pl++ --line-spec 5 7 9 11 \\
           --calib kitti/calib --image kitti/image_2 -o out/plpp4
+      sparsetools beams raw/2011_09_26/2011_09_26_drive_0001_sync --n 4 -o out/b4
       sparsetools beams --report kitti/velodyne/000001.bin
     """
+    from ..io.sources import cloud_frames
     from ..pipeline.beams import BeamsSettings, ring_report, run_beams
 
     m = re.fullmatch(r"(\d+)x(\d+)", pl_grid.lower())
@@ -225,7 +212,7 @@ def beams(
             profile=profile,
             far_range=far_range,
         )
-        _print_report(ring_report(list(clouds), settings), as_json)
+        _print_report(ring_report(list(clouds), settings), batch.as_json)
         return
     if out_dir is None:
         raise click.UsageError("Missing option '-o' / '--out' (or use --report).")
@@ -246,20 +233,13 @@ def beams(
         fmt=fmt,
         far_range=far_range,
     )
-    params = click.get_current_context().params
+    # A KITTI raw / object tree brings its calibration: the density is reported then too.
+    frames = cloud_frames(list(clouds), calib=calib, image=image)
+    inputs = [*clouds, *([calib] if calib else []), *([image] if image else [])]
     summary = run_beams(
-        list(clouds),
-        out_dir,
-        settings,
-        calib=calib,
-        image=image,
-        image_size=image_size,
-        executor=executor_from(params),
-        overwrite=overwrite,
-        on_error=on_error,
-        progress=progress_enabled(),
+        frames, out_dir, settings, image_size=image_size, batch=batch, inputs=inputs
     )
-    emit_summary(summary, as_json=as_json, title=f"beams written to {out_dir}")
+    emit_summary(summary, as_json=batch.as_json, title=f"beams written to {out_dir}")
 
 
 def _print_report(reports: list[dict], as_json: bool) -> None:

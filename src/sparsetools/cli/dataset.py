@@ -7,12 +7,22 @@ from pathlib import Path
 
 import click
 
-from .options import batch_options, emit_summary, executor_from, progress_enabled
+from .options import (
+    batch_options,
+    calib_option,
+    emit_summary,
+    gt_option,
+    json_option,
+    output_dir_option,
+    seed_option,
+)
 
 
 def _split_callback(ctx, param, value):
     if value is None:
         return None
+    if value == "tree":
+        return value
     from ..errors import ParameterError
     from ..pipeline.dataset import parse_split_fractions
 
@@ -85,42 +95,30 @@ def dataset():
 
 
 @dataset.command("build")
-@click.option(
-    "-o",
-    "--out",
-    "out_dir",
-    required=True,
-    type=click.Path(path_type=Path),
-    help="Dataset folder (created, or extended when it holds a dataset).",
-)
+@output_dir_option(help="Dataset folder (created, or extended when it holds a dataset).")
 @click.option(
     "--rgb",
     required=True,
     type=click.Path(exists=True, path_type=Path),
-    help="Folder of camera images (.png/.jpg), searched recursively.",
+    help="Camera images: a folder tree (<sequence>/<frame>.png), a KITTI raw drive, date "
+    "folder or root, or a val_selection_cropped folder.",
 )
 @click.option(
     "--sparse",
     required=True,
     type=click.Path(exists=True, path_type=Path),
-    help="Folder of sparse depth maps (KITTI uint16 PNG or .npy metres), or a Parquet "
-    "points table (id, u, v, depth).",
+    help="Sparse depth maps (KITTI uint16 PNG or .npy metres): a folder tree, a project / "
+    "beams / jbf-expand output, a KITTI depth-completion tree, or a Parquet points table.",
 )
-@click.option(
-    "--gt",
-    type=click.Path(exists=True, file_okay=False, path_type=Path),
-    help="Folder of ground-truth depth maps (PNG or .npy).",
-)
+@gt_option(help="Ground-truth depth maps (PNG or .npy), e.g. a KITTI depth-completion tree.")
 @click.option(
     "--confidence",
     type=click.Path(exists=True, file_okay=False, path_type=Path),
-    help="Folder of confidence maps (PNG uint16/65535 or .npy; <stem>_conf matches).",
+    help="Folder of confidence maps (PNG uint16/65535 or .npy; <frame>_conf matches).",
 )
-@click.option(
-    "--calib",
-    type=click.Path(exists=True, path_type=Path),
+@calib_option(
     help="One calibration (file or KITTI raw calib folder) or a folder of per-frame "
-    "calibrations: gives fx, fy, cx, cy.",
+    "calibrations: gives fx, fy, cx, cy (a KITTI raw --rgb tree brings its own)."
 )
 @click.option(
     "--sequence-from",
@@ -135,8 +133,9 @@ def dataset():
     "--split",
     "split",
     callback=_split_callback,
-    metavar="TRAIN,VAL,TEST",
-    help="Split fractions over sequences [default: 0.8,0.1,0.1]; or name=fraction,...",
+    metavar="TRAIN,VAL,TEST|tree",
+    help="Split fractions over sequences [default: 0.8,0.1,0.1]; name=fraction,...; or "
+    "'tree': the split of a KITTI depth-completion tree (train / val).",
 )
 @click.option(
     "--split-file",
@@ -147,9 +146,7 @@ def dataset():
     help="Split list (KITTI Eigen form or one id per line); repeat per split. The split "
     "name comes from NAME= or the file name (train/val/test).",
 )
-@click.option(
-    "--seed", type=int, default=0, show_default=True, help="Seed of the split assignment."
-)
+@seed_option(help="Seed of the split assignment.")
 @click.option(
     "--sparse-format",
     type=click.Choice(["png", "parquet", "both"]),
@@ -162,7 +159,8 @@ def dataset():
     "copy",
     default=True,
     show_default=True,
-    help="Copy input files, or hard-link them (falls back to copying).",
+    help="Copy input files, or link them symbolically (the dataset can then never change "
+    "an input; moving the inputs breaks the links).",
 )
 @click.option(
     "--source",
@@ -177,9 +175,7 @@ def dataset():
     help="Generation parameters (JSON object) stored in every new row.",
 )
 @batch_options
-@click.pass_context
 def build(
-    ctx,
     out_dir,
     rgb,
     sparse,
@@ -194,19 +190,14 @@ def build(
     copy,
     source,
     params,
-    workers,
-    overwrite,
-    on_error,
-    executor,
-    dask_scheduler,
-    as_json,
+    batch,
 ):
-    """Build a dataset, or add frames to one, from per-frame files matched by name.
+    """Build a dataset, or add frames to one, from per-frame files matched by frame.
 
-    Frames are matched by their path relative to each folder without suffix (or by a file
-    stem that is unique on both sides). Splits go by sequence, never by frame. Rerunning
-    after an interruption resumes; frames already in the dataset are kept (rebuilt with
-    --overwrite).
+    Frames are matched by their key <sequence>/<frame> (the sequence folder, or the KITTI
+    drive, and the file name), or by a frame name unique on both sides. Splits go by
+    sequence, never by frame. A rerun skips frames that are up to date, rebuilds frames
+    whose inputs changed and refuses other settings (--overwrite rebuilds everything).
 
     \b
     Examples:
@@ -222,7 +213,6 @@ def build(
 
     if split is not None and split_files:
         raise click.UsageError("give --split or --split-file, not both")
-    params_all = ctx.params
     summary = build_dataset(
         out_dir,
         rgb=rgb,
@@ -238,15 +228,11 @@ def build(
         link=not copy,
         source=source,
         params=params,
-        executor=executor_from(params_all),
-        overwrite=overwrite,
-        on_error=on_error,
-        progress=progress_enabled(),
-        debug=bool(ctx.find_root().obj.get("debug")),
-    )
-    if not as_json:
+        batch=batch,
+    ).as_dict()
+    if not batch.as_json:
         summary = _flat(summary)
-    emit_summary(summary, as_json=as_json, title=f"dataset written to {out_dir}")
+    emit_summary(summary, as_json=batch.as_json, title=f"dataset written to {out_dir}")
 
 
 def _flat(summary: dict) -> dict:
@@ -270,7 +256,7 @@ def _fmt(v) -> str:
 
 @dataset.command("info")
 @click.argument("dataset_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
-@click.option("--json", "as_json", is_flag=True, help="Print the information as JSON.")
+@json_option(help="Print the information as JSON.")
 def info(dataset_dir, as_json):
     """Counts per split, image sizes, density statistics, file sizes, schema version.
 
@@ -351,7 +337,7 @@ def _human(n: int) -> str:
     show_default=True,
     help="Threads reading and decoding files.",
 )
-@click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
+@json_option(help="Print the report as JSON.")
 def verify(dataset_dir, no_hash, workers, as_json):
     """Check every file: present, decodable, sizes consistent, SHA-256 matching the manifest.
 

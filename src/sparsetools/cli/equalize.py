@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from .options import batch_options, emit_summary, executor_from, output_dir_option, progress_enabled
+from .options import batch_options, emit_summary, output_dir_option
 
 
 def _clip_limit(ctx, param, value):
@@ -32,7 +32,7 @@ def _clip_limit(ctx, param, value):
 @click.option(
     "--reference",
     metavar="FRAME",
-    help="Frame whose histogram makes the table: a path or the stem of an input "
+    help="Frame whose histogram makes the table: a path or the name of an input "
     "[default: the first image].",
 )
 @batch_options
@@ -41,19 +41,14 @@ def equalize(
     out_dir,
     clip,
     reference,
-    workers,
-    overwrite,
-    on_error,
-    executor,
-    dask_scheduler,
-    as_json,
+    batch,
 ):
     """Equalise images with ONE clipped-histogram table per channel (RNW's MCIE).
 
     The table comes from the reference frame (256 bins, clip limit = CLIP x pixel count,
     overflow spread uniformly) and maps every frame with cv2.LUT, so the same grey level
     becomes the same output level in all frames (photometric losses stay valid). Writes
-    OUT/<stem>.png and the table as OUT/mcie_lut.json.
+    OUT/<sequence>/<frame>.png and the table as OUT/mcie_lut.json.
 
     \b
     Examples:
@@ -62,14 +57,5 @@ def equalize(
     """
     from ..pipeline.equalize import run_equalize
 
-    summary = run_equalize(
-        images,
-        out_dir,
-        clip=clip,
-        reference=reference,
-        executor=executor_from(locals()),
-        overwrite=overwrite,
-        on_error=on_error,
-        progress=progress_enabled(),
-    )
-    emit_summary(summary, as_json=as_json, title=f"equalised frames written to {out_dir}")
+    summary = run_equalize(images, out_dir, clip=clip, reference=reference, batch=batch)
+    emit_summary(summary, as_json=batch.as_json, title=f"equalised frames written to {out_dir}")

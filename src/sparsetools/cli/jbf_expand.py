@@ -6,7 +6,16 @@ from pathlib import Path
 
 import click
 
-from .options import batch_options, emit_summary, executor_from, output_dir_option, progress_enabled
+from .options import (
+    batch_options,
+    calib_option,
+    emit_summary,
+    image_option,
+    max_depth_option,
+    output_dir_option,
+    positive,
+    resize_option,
+)
 
 
 def _window(ctx, param, value):
@@ -24,34 +33,21 @@ def _window(ctx, param, value):
     return w, h
 
 
-def _focal(ctx, param, value):
-    if value is not None and not (0 < value < float("inf")):
-        raise click.BadParameter(f"focal length must be finite and > 0, got {value}")
-    return value
-
-
 _POSITIVE = click.FloatRange(min=0, min_open=True)
 
 
 @click.command("jbf-expand")
 @click.argument("radar", nargs=-1, required=True, type=click.Path(exists=True, path_type=Path))
-@click.option(
-    "--image",
-    required=True,
-    type=click.Path(exists=True, path_type=Path),
-    help="Camera image (one frame) or folder of images matched by stem.",
+@image_option(required=True, help="Camera image (one frame) or folder of images matched by frame.")
+@calib_option(
+    help="Calibration file or folder of per-frame .json|.txt (focal lengths; radar->camera "
+    "transform for .pcd inputs)."
 )
 @click.option(
-    "--calib",
-    type=click.Path(exists=True, path_type=Path),
-    help="Calibration file or folder of <stem>.json|.txt (focal lengths; radar->camera "
-    "transform for .pcd inputs).",
+    "--fx", type=float, callback=positive, help="Focal length in pixels (instead of --calib)."
 )
 @click.option(
-    "--fx", type=float, callback=_focal, help="Focal length in pixels (instead of --calib)."
-)
-@click.option(
-    "--fy", type=float, callback=_focal, help="Focal length in pixels (instead of --calib)."
+    "--fy", type=float, callback=positive, help="Focal length in pixels (instead of --calib)."
 )
 @output_dir_option
 @click.option(
@@ -112,17 +108,12 @@ _POSITIVE = click.FloatRange(min=0, min_open=True)
     show_default=True,
     help="Which seed wins a pixel reached by several windows.",
 )
-@click.option(
-    "--resize",
-    type=_POSITIVE,
-    default=None,
-    help="Scale image, radar and LiDAR maps and intrinsics by S (e.g. 0.5).",
-)
+@resize_option(help="Scale image, radar and LiDAR maps and intrinsics by S (e.g. 0.5).")
 @click.option(
     "--confidence/--no-confidence",
     default=True,
     show_default=True,
-    help="Also write <stem>_conf.png (confidence * 65535) or .npy.",
+    help="Also write <frame>_conf.png (confidence * 65535) or .npy.",
 )
 @click.option(
     "--conf-format",
@@ -134,15 +125,9 @@ _POSITIVE = click.FloatRange(min=0, min_open=True)
 @click.option(
     "--lidar",
     type=click.Path(exists=True, path_type=Path),
-    help="LiDAR depth PNG or folder (<stem>.png): print the intrinsic-error table.",
+    help="LiDAR depth PNG or folder matched by frame: print the intrinsic-error table.",
 )
-@click.option(
-    "--max-depth",
-    type=_POSITIVE,
-    default=80.0,
-    show_default=True,
-    help="LiDAR depth cap of the intrinsic error, metres.",
-)
+@max_depth_option(default=80.0, help="LiDAR depth cap of the intrinsic error, metres.")
 @batch_options
 def jbf_expand(
     radar,
@@ -164,13 +149,15 @@ def jbf_expand(
     conf_format,
     lidar,
     max_depth,
-    **batch,
+    batch,
 ):
     """Expand sparse radar depth with a range-aware joint bilateral filter.
 
     RADAR... are radar depth PNGs (KITTI uint16, e.g. from `sparsetools project`) or
-    nuScenes radar .pcd files (projected with --calib), or folders of them. Writes
-    OUT/<stem>.png (expanded depth) and OUT/<stem>_conf.png (confidence).
+    nuScenes radar .pcd files (projected with --calib), or folders of them (a `project`
+    output folder, with its <sequence>/ sub-folders). Writes OUT/<sequence>/<frame>.png
+    (expanded depth) and OUT/<sequence>/<frame>_conf.png (confidence); inputs are matched
+    by frame.
 
     \b
     Example:
@@ -180,12 +167,7 @@ def jbf_expand(
       sparsetools jbf-expand radar/000000.png --image 000000.png --fx 721.5 --fy 721.5 \\
           --kernel range -o out/range
     """
-    from ..pipeline.jbf_expand import (
-        JbfSettings,
-        format_intrinsic_table,
-        intrinsic_summary,
-        run_jbf_expand,
-    )
+    from ..pipeline.jbf_expand import JbfSettings, format_intrinsic_table, run_jbf_expand
 
     if calib is None and (fx is None or fy is None):
         raise click.UsageError("give --calib, or both --fx and --fy")
@@ -214,23 +196,13 @@ def jbf_expand(
         fx=fx,
         fy=fy,
         lidar=lidar,
-        executor=executor_from(batch),
-        overwrite=batch["overwrite"],
-        on_error=batch["on_error"],
-        progress=progress_enabled(),
+        batch=batch,
     )
     result = summary.as_dict()
-    done = summary.done
-    if done:
-        seeds = summary.total("seeds") / len(done)
-        points = summary.total("points") / len(done)
-        result["mean_seeds"] = seeds
-        result["mean_points"] = points
-        result["expansion_factor"] = points / seeds if seeds else 0.0
-    if lidar is not None:
-        table = intrinsic_summary(summary)
-        if batch["as_json"]:
+    table = result.pop("intrinsic_error", None)
+    if table is not None:
+        if batch.as_json:
             result["intrinsic_error"] = table
         elif table["frames"]:
             click.echo(format_intrinsic_table(table, max_depth=max_depth))
-    emit_summary(result, as_json=batch["as_json"], title=f"expanded radar written to {out_dir}")
+    emit_summary(result, as_json=batch.as_json, title=f"expanded radar written to {out_dir}")

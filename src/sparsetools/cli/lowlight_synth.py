@@ -7,7 +7,14 @@ from pathlib import Path
 
 import click
 
-from .options import batch_options, emit_summary, executor_from, output_dir_option, progress_enabled
+from .options import (
+    batch_options,
+    calib_option,
+    emit_summary,
+    output_dir_option,
+    positive,
+    seed_option,
+)
 
 CAMERAS = ("SonyA7S2", "NikonD850", "CanonEOS70D", "random")
 
@@ -49,40 +56,26 @@ def _count_range(ctx, param, value):
     return lo, hi
 
 
-def _positive(ctx, param, value):
-    if value is not None and not value > 0:
-        raise click.BadParameter(f"must be > 0, got {value}")
-    return value
-
-
 @click.command("lowlight-synth")
 @click.argument("images", nargs=-1, required=True, type=click.Path(exists=True, path_type=Path))
 @output_dir_option
 @click.option(
     "--depth",
     type=click.Path(exists=True, path_type=Path),
-    help="Depth PNG (KITTI uint16) for one image, or a folder of <stem>.png: flare "
+    help="Depth PNG (KITTI uint16) for one image, or a folder matched by frame: flare "
     "sources are placed only at pixels with depth in (0, --flare-max-depth] m.",
 )
-@click.option(
-    "--calib",
-    type=click.Path(exists=True, path_type=Path),
-    help="Calibration (or folder of <stem>.txt/.json) giving K, to record each "
-    "light source's 3-D point.",
+@calib_option(
+    help="Calibration (or folder of per-frame .txt/.json) giving K, to record each "
+    "light source's 3-D point."
 )
-@click.option(
-    "--seed",
-    type=int,
-    default=0,
-    show_default=True,
-    help="Global seed; each output uses frame_rng(seed, '<stem>:<variant>').",
-)
+@seed_option(help="Global seed; each output uses frame_rng(seed, '<frame id>:<variant>').")
 @click.option(
     "--variants",
-    type=click.IntRange(min=1),
+    type=click.IntRange(min=1, max=1000),
     default=1,
     show_default=True,
-    help="Night versions per image (OUT/<stem>_v<k>.png when > 1).",
+    help="Night versions per image, 1-1000 (OUT/<frame>_v<k>.png when > 1).",
 )
 @click.option("--flare/--no-flare", default=True, show_default=True, help="Add lens flares.")
 @click.option(
@@ -144,7 +137,7 @@ def _positive(ctx, param, value):
     type=float,
     default=20.0,
     show_default=True,
-    callback=_positive,
+    callback=positive,
     help="Farthest light source, metres (with --depth).",
 )
 @click.option(
@@ -181,19 +174,14 @@ def lowlight_synth(
     flare_max_depth,
     ratio,
     bank_seed,
-    workers,
-    overwrite,
-    on_error,
-    executor,
-    dask_scheduler,
-    as_json,
+    batch,
 ):
     """Turn day images into night images (DepthDark's low-light data generation).
 
     IMAGES are PNG/JPEG files or folders. Each output is (s_b I)^g plus procedural lens
     flares, with ELD sensor noise in linear light, returned with exponent 1/g. Writes
-    OUT/<stem>.png (OUT/<stem>_v<k>.png with --variants > 1), a JSON record per output in
-    OUT/records/, and OUT/manifest.parquet (one row per output: source, variant, seed and
+    OUT/<sequence>/<frame>.png (<frame>_v<k>.png with --variants > 1), a JSON record per
+    output in OUT/records/, and OUT/manifest.parquet (one row per output: source, variant, seed and
     every sampled parameter). The same seed gives the same bytes whatever --workers is.
 
     \b
@@ -226,9 +214,6 @@ def lowlight_synth(
         seed=seed,
         variants=variants,
         params=params,
-        executor=executor_from(locals()),
-        overwrite=overwrite,
-        on_error=on_error,
-        progress=progress_enabled(),
+        batch=batch,
     )
-    emit_summary(summary, as_json=as_json, title=f"night images written to {out_dir}")
+    emit_summary(summary, as_json=batch.as_json, title=f"night images written to {out_dir}")

@@ -14,6 +14,7 @@ import sys
 import click
 
 from .._version import __version__
+from ..errors import FrameError
 
 # command name -> "module:function" under sparsetools.cli
 COMMANDS = {
@@ -57,14 +58,21 @@ class LazyGroup(click.Group):
     def invoke(self, ctx):
         from ..errors import SparsetoolsError
 
-        debug = ctx.params.get("debug", False)
         try:
             return super().invoke(ctx)
         except SparsetoolsError as exc:
+            debug = bool(ctx.params.get("debug") or (ctx.obj or {}).get("debug"))
+            text = str(exc)
             if debug:
-                raise
+                # The frame's own traceback (from a worker) follows the first line.
+                click.echo(f"Error: {text}", err=True)
+                import traceback
+
+                traceback.print_exception(exc, file=sys.stderr)
+                ctx.exit(1)
             # One line, whatever the message holds (third-party texts can span lines).
-            click.echo(f"Error: {' '.join(str(exc).split())}", err=True)
+            first = text.split("\n", 1)[0] if isinstance(exc, FrameError) else text
+            click.echo(f"Error: {' '.join(first.split())}", err=True)
             ctx.exit(1)
         except KeyboardInterrupt:
             click.echo("Interrupted: completed outputs are kept; rerun to resume.", err=True)
@@ -97,8 +105,8 @@ def cli(ctx, verbose, quiet, debug):
         level=level, format="%(levelname)s: %(message)s", stream=sys.stderr, force=True
     )
     ctx.ensure_object(dict)
-    ctx.obj["quiet"] = quiet
-    ctx.obj["debug"] = debug
+    ctx.obj["quiet"] = quiet or ctx.obj.get("quiet", False)
+    ctx.obj["debug"] = debug or ctx.obj.get("debug", False)
 
 
 def main(argv=None):

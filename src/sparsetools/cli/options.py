@@ -1,38 +1,86 @@
-"""Options shared by several commands, and validation callbacks (click.BadParameter)."""
+"""Options shared by several commands (declared once, here) and validation callbacks.
+
+Every option that two commands have in common is declared by a function of this module,
+so it is spelt, checked and documented the same way everywhere. Callbacks validate with
+:mod:`sparsetools.validate` and turn its errors into ``click.BadParameter``.
+"""
 
 from __future__ import annotations
 
 import functools
 import json
-import sys
+import logging
 from pathlib import Path
 
 import click
 
+from ..errors import ParameterError
+
 __all__ = [
     "batch_options",
+    "calib_option",
+    "checked",
     "emit_summary",
-    "executor_from",
     "float_pair",
+    "image_option",
     "image_size_option",
     "int_list",
+    "json_option",
+    "max_depth_option",
+    "min_depth_option",
     "output_dir_option",
-    "progress_enabled",
+    "overwrite_option",
+    "positive",
+    "quiet_debug_options",
+    "resize_option",
+    "seed_option",
     "size_wxh",
 ]
 
 
+# -- callbacks -----------------------------------------------------------------------------------
+
+
+def checked(fn):
+    """Adapt ``fn(value) -> value`` raising ParameterError into a click callback."""
+
+    def callback(ctx, param, value):
+        if value is None:
+            return None
+        try:
+            return fn(value)
+        except ParameterError as exc:  # click names the option itself
+            raise click.BadParameter(exc.message) from None
+
+    return callback
+
+
+def positive(ctx, param, value):
+    """Callback: a finite number > 0 (None passes)."""
+    from ..validate import check_positive
+
+    return checked(lambda v: check_positive(v, param.name))(ctx, param, value)
+
+
+def non_negative(ctx, param, value):
+    """Callback: a finite number >= 0 (None passes)."""
+    from ..validate import check_non_negative
+
+    return checked(lambda v: check_non_negative(v, param.name))(ctx, param, value)
+
+
 def size_wxh(ctx, param, value):
     """Parse ``WxH`` (e.g. 1242x375) into (W, H)."""
-    if value is None:
-        return None
-    try:
-        w, h = (int(v) for v in value.lower().split("x"))
-    except ValueError:
-        raise click.BadParameter(f"expected WxH such as 1242x375, got {value!r}") from None
-    if w <= 0 or h <= 0:
-        raise click.BadParameter(f"width and height must be positive, got {value!r}")
-    return w, h
+    from ..validate import parse_size
+
+    return checked(lambda v: parse_size(v, param.name if param else "size"))(ctx, param, value)
+
+
+def crop_box(ctx, param, value):
+    """Parse ``TOP,LEFT,H,W`` into a tuple of four ints."""
+    from ..validate import parse_crop
+
+    return checked(lambda v: parse_crop(v, param.name))(ctx, param, value)
 
 
 def float_pair(sep: str = ","):
@@ -66,15 +114,63 @@ def int_list(ctx, param, value):
     return tuple(out)
 
 
-def output_dir_option(f):
-    return click.option(
-        "-o",
-        "--out",
-        "out_dir",
-        required=True,
-        type=click.Path(path_type=Path),
-        help="Output folder (created; existing complete outputs are skipped unless --overwrite).",
-    )(f)
+# -- shared declarations -------------------------------------------------------------------------
+
+
+def output_dir_option(
+    f=None, *, required: bool = True, help: str | None = None, file: bool = False
+):
+    """``-o/--out``: the output folder (or file, with ``file=True``)."""
+    text = help or (
+        "Output file (refused if it exists and was not written by this command, unless "
+        "--overwrite)."
+        if file
+        else "Output folder (created; outputs that are up to date are skipped, other "
+        "settings are refused unless --overwrite)."
+    )
+
+    def deco(fn):
+        return click.option(
+            "-o",
+            "--out",
+            "out_dir",
+            required=required,
+            default=None,
+            type=click.Path(path_type=Path, dir_okay=not file),
+            help=text,
+        )(fn)
+
+    return deco(f) if f is not None else deco
+
+
+def calib_option(f=None, *, help: str | None = None, required: bool = False):
+    """``--calib``: a calibration file, a KITTI raw date folder, or per-frame files."""
+    text = help or (
+        "KITTI object calib .txt, KITTI raw date folder, JSON calibration, or a folder of "
+        "per-frame calibrations matched by frame."
+    )
+
+    def deco(fn):
+        return click.option(
+            "--calib",
+            required=required,
+            type=click.Path(exists=True, path_type=Path),
+            help=text,
+        )(fn)
+
+    return deco(f) if f is not None else deco
+
+
+def image_option(f=None, *, help: str | None = None, required: bool = False):
+    """``--image``: an image file, or a folder of images matched by frame."""
+    text = help or "Image (or folder of images matched by frame) giving the map size."
+
+    def deco(fn):
+        return click.option(
+            "--image", required=required, type=click.Path(exists=True, path_type=Path), help=text
+        )(fn)
+
+    return deco(f) if f is not None else deco
 
 
 def image_size_option(f):
@@ -86,18 +182,198 @@ def image_size_option(f):
     )(f)
 
 
+def min_depth_option(f=None, *, default: float | None = 0.1, help: str | None = None):
+    def deco(fn):
+        return click.option(
+            "--min-depth",
+            type=float,
+            default=default,
+            show_default=default is not None,
+            callback=non_negative,
+            help=help or "Drop points with depth <= this (metres).",
+        )(fn)
+
+    return deco(f) if f is not None else deco
+
+
+def max_depth_option(f=None, *, default: float | None = None, help: str | None = None):
+    def deco(fn):
+        return click.option(
+            "--max-depth",
+            type=float,
+            default=default,
+            show_default=default is not None,
+            callback=positive,
+            help=help or "Drop points with depth > this (metres; default no limit).",
+        )(fn)
+
+    return deco(f) if f is not None else deco
+
+
+def resize_option(f=None, *, help: str | None = None):
+    def deco(fn):
+        return click.option(
+            "--resize",
+            type=float,
+            default=None,
+            callback=positive,
+            metavar="S",
+            help=help
+            or "Scale the image and intrinsics by S first (e.g. 0.5: 1600x900 -> 800x450).",
+        )(fn)
+
+    return deco(f) if f is not None else deco
+
+
+def crop_option(f=None, *, help: str | None = None):
+    def deco(fn):
+        return click.option(
+            "--crop",
+            callback=crop_box,
+            metavar="TOP,LEFT,H,W",
+            help=help or "Then crop to H x W pixels at (TOP, LEFT), e.g. 100,0,350,800.",
+        )(fn)
+
+    return deco(f) if f is not None else deco
+
+
+def seed_option(f=None, *, default: int = 0, help: str | None = None):
+    def deco(fn):
+        return click.option(
+            "--seed", type=int, default=default, show_default=True, help=help or "Random seed."
+        )(fn)
+
+    return deco(f) if f is not None else deco
+
+
+def gt_option(f=None, *, help: str, required: bool = False):
+    def deco(fn):
+        return click.option(
+            "--gt", required=required, type=click.Path(exists=True, path_type=Path), help=help
+        )(fn)
+
+    return deco(f) if f is not None else deco
+
+
+def device_option(f):
+    """``--device``: where torch runs."""
+    return click.option(
+        "--device", default="cpu", show_default=True, help="cpu, or cuda when available."
+    )(f)
+
+
+def batch_size_option(f=None, *, default: int = 8, help: str | None = None):
+    def deco(fn):
+        return click.option(
+            "--batch-size",
+            type=click.IntRange(min=1),
+            default=default,
+            show_default=True,
+            help=help or "Samples per batch.",
+        )(fn)
+
+    return deco(f) if f is not None else deco
+
+
+def json_option(f=None, *, help: str = "Print the summary as JSON on stdout."):
+    def deco(fn):
+        return click.option("--json", "as_json", is_flag=True, help=help)(fn)
+
+    return deco(f) if f is not None else deco
+
+
+def overwrite_option(f=None, *, help: str | None = None):
+    def deco(fn):
+        return click.option(
+            "--overwrite",
+            is_flag=True,
+            help=help or "Recompute and replace outputs this command wrote before.",
+        )(fn)
+
+    return deco(f) if f is not None else deco
+
+
+def _set_quiet(ctx, param, value):
+    if value:
+        root = ctx.find_root()
+        root.ensure_object(dict)
+        root.obj["quiet"] = True
+        logging.getLogger().setLevel(logging.ERROR)
+    return value
+
+
+def _set_debug(ctx, param, value):
+    if value:
+        root = ctx.find_root()
+        root.ensure_object(dict)
+        root.obj["debug"] = True
+    return value
+
+
+def quiet_debug_options(f):
+    """``-q/--quiet`` and ``--debug`` after the subcommand too (same as before it)."""
+    f = click.option(
+        "--debug",
+        is_flag=True,
+        expose_value=False,
+        is_eager=True,
+        callback=_set_debug,
+        help="Show full tracebacks (also of a failed frame) instead of one-line errors.",
+    )(f)
+    return click.option(
+        "-q",
+        "--quiet",
+        is_flag=True,
+        expose_value=False,
+        is_eager=True,
+        callback=_set_quiet,
+        help="Only errors on stderr; no progress bar.",
+    )(f)
+
+
+def root_flag(name: str) -> bool:
+    ctx = click.get_current_context(silent=True)
+    if ctx is None:
+        return False
+    obj = ctx.find_root().obj
+    return bool(obj and obj.get(name))
+
+
 def batch_options(f):
-    """--workers, --overwrite, --on-error, --executor, --dask-scheduler, --json."""
+    """The batch options every batch command has, passed to the command as ``batch``.
+
+    ``--workers``, ``--overwrite``, ``--on-error``, ``--executor``, ``--dask-scheduler``,
+    ``--json``, ``--debug``, ``-q``: one :class:`sparsetools.pipeline.Batch`.
+    """
+
+    @functools.wraps(f)
+    def command(*args, workers, overwrite, on_error, executor, dask_scheduler, as_json, **kw):
+        from ..pipeline.batch import Batch
+
+        batch = Batch(
+            workers=workers,
+            executor=executor,
+            scheduler=dask_scheduler,
+            overwrite=overwrite,
+            on_error=on_error,
+            progress=False if root_flag("quiet") else None,
+            debug=root_flag("debug"),
+            as_json=as_json,
+        )
+        return f(*args, batch=batch, **kw)
+
     decorators = [
         click.option(
             "--workers",
             type=click.IntRange(min=1),
             default=1,
             show_default=True,
-            help="Frames processed in parallel (local processes or Dask workers).",
+            help="Frames processed in parallel (local processes or Dask workers); capped by "
+            "the frames and the CPUs available.",
         ),
-        click.option(
-            "--overwrite", is_flag=True, help="Recompute and replace outputs that already exist."
+        overwrite_option(
+            help="Recompute every frame and replace this folder's results (files the "
+            "command did not write are never touched)."
         ),
         click.option(
             "--on-error",
@@ -119,31 +395,20 @@ def batch_options(f):
             default=None,
             help="Dask scheduler address (default: start a local cluster).",
         ),
-        click.option(
-            "--json", "as_json", is_flag=True, help="Print the summary as JSON on stdout."
-        ),
+        json_option,
+        quiet_debug_options,
     ]
-    return functools.reduce(lambda acc, d: d(acc), reversed(decorators), f)
+    return functools.reduce(lambda acc, d: d(acc), reversed(decorators), command)
 
 
-def executor_from(params: dict):
-    from ..pipeline import make_executor
-
-    return make_executor(
-        params.get("executor", "local"),
-        workers=params.get("workers", 1),
-        scheduler=params.get("dask_scheduler"),
-    )
+# -- output --------------------------------------------------------------------------------------
 
 
-def progress_enabled() -> bool:
-    ctx = click.get_current_context(silent=True)
-    quiet = bool(ctx and ctx.find_root().obj and ctx.find_root().obj.get("quiet"))
-    return (not quiet) and sys.stderr.isatty()
-
-
-def emit_summary(summary: dict, *, as_json: bool, title: str = "") -> None:
-    """Print a run summary on stdout (key: value lines, or JSON); exit 1 if frames failed."""
+def emit_summary(summary, *, as_json: bool, title: str = "") -> None:
+    """Print a run summary (a RunSummary or a dict) on stdout (key: value lines, or JSON);
+    exit 1 if frames failed."""
+    if hasattr(summary, "as_dict"):
+        summary = summary.as_dict()
     if as_json:
         click.echo(json.dumps(summary, indent=1, default=_json_default))
     else:

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import click
 
+from .options import output_dir_option
+
 
 def _overrides(ctx, param, values):
     out = {}
@@ -17,26 +19,46 @@ def _overrides(ctx, param, values):
     return out
 
 
+def run_command(args: list[str]) -> tuple[int, str, str]:
+    """Run one sparsetools command line in this process: (exit code, stdout, stderr)."""
+    import contextlib
+    import io
+
+    from ..errors import SparsetoolsError
+    from .main import cli
+
+    out, err = io.StringIO(), io.StringIO()
+    code = 0
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            # With standalone_mode=False click returns the code of ctx.exit(n) instead of exiting.
+            ret = cli.main(args=["-q", *args], prog_name="sparsetools", standalone_mode=False)
+            code = ret if isinstance(ret, int) else 0
+        except SystemExit as exc:  # ctx.exit() inside commands
+            code = int(exc.code or 0) if not isinstance(exc.code, str) else 1
+        except SparsetoolsError as exc:
+            err.write(f"Error: {exc}\n")
+            code = 1
+        except Exception as exc:  # click usage errors and anything unexpected
+            msg = exc.format_message() if hasattr(exc, "format_message") else str(exc)
+            err.write(f"Error: {msg}\n")
+            code = getattr(exc, "exit_code", 1) or 1
+    return code, out.getvalue(), err.getvalue()
+
+
 def _run(config: Path, out_dir: Path, overrides: dict, only: tuple[str, ...]) -> None:
     from ..pipeline.workflow import load_workflow, run_workflow
 
     wf = load_workflow(config, out_dir=out_dir, overrides=overrides)
     quiet = bool((click.get_current_context().find_root().obj or {}).get("quiet"))
     echo = (lambda s: None) if quiet else (lambda s: click.echo(s, err=True))
-    results = run_workflow(wf, out_dir, only=list(only) or None, echo=echo)
+    results = run_workflow(wf, out_dir, run_command=run_command, only=list(only) or None, echo=echo)
     click.echo(f"{len(results)} step(s) done; report: {Path(out_dir) / 'report.md'}")
 
 
 @click.command("pipeline")
 @click.argument("config", type=click.Path(path_type=Path))
-@click.option(
-    "-o",
-    "--out",
-    "out_dir",
-    type=click.Path(path_type=Path),
-    required=True,
-    help="Output folder; ${out} in the config.",
-)
+@output_dir_option(help="Output folder; ${out} in the config.")
 @click.option(
     "--set",
     "overrides",
@@ -62,15 +84,7 @@ def pipeline(config, out_dir, overrides, only):
 
 
 @click.command("demo")
-@click.option(
-    "-o",
-    "--out",
-    "out_dir",
-    type=click.Path(path_type=Path),
-    default=Path("out/demo"),
-    show_default=True,
-    help="Output folder.",
-)
+@output_dir_option(required=False, help="Output folder [default: out/demo].")
 @click.option(
     "--config",
     type=click.Path(path_type=Path),
@@ -81,8 +95,10 @@ def pipeline(config, out_dir, overrides, only):
 def demo(out_dir, config):
     """Run the whole pipeline on the bundled sample data (what `make demo` does).
 
+    A second run reuses every output that is up to date and rewrites the report.
+
     \b
     Example:
       sparsetools demo -o out/demo      # then open out/demo/report.md
     """
-    _run(config, out_dir, {}, ())
+    _run(config, out_dir or Path("out/demo"), {}, ())

@@ -8,58 +8,26 @@ import click
 
 from .options import (
     batch_options,
+    calib_option,
+    crop_option,
     emit_summary,
-    executor_from,
+    image_option,
     image_size_option,
+    max_depth_option,
+    min_depth_option,
     output_dir_option,
-    progress_enabled,
+    resize_option,
 )
-
-
-def _crop(ctx, param, value):
-    if value is None:
-        return None
-    try:
-        parts = tuple(int(v) for v in value.split(","))
-    except ValueError:
-        raise click.BadParameter(f"expected TOP,LEFT,H,W as integers, got {value!r}") from None
-    if len(parts) != 4:
-        raise click.BadParameter(f"expected four integers TOP,LEFT,H,W, got {value!r}")
-    top, left, h, w = parts
-    if top < 0 or left < 0 or h <= 0 or w <= 0:
-        raise click.BadParameter(f"TOP, LEFT must be >= 0 and H, W > 0, got {value!r}")
-    return parts
-
-
-def _positive(ctx, param, value):
-    if value is not None and not value > 0:
-        raise click.BadParameter(f"must be > 0, got {value}")
-    return value
-
-
-def _non_negative(ctx, param, value):
-    if value is not None and not value >= 0:
-        raise click.BadParameter(f"must be >= 0, got {value}")
-    return value
 
 
 @click.command("project")
 @click.argument(
     "clouds", nargs=-1, metavar="[CLOUD]...", type=click.Path(exists=True, path_type=Path)
 )
-@click.option(
-    "--calib",
-    type=click.Path(exists=True, path_type=Path),
-    help="KITTI object calib .txt, KITTI raw date folder, JSON calibration, or a folder "
-    "of per-frame calib files matched by stem.",
-)
+@calib_option
 @output_dir_option
 @image_size_option
-@click.option(
-    "--image",
-    type=click.Path(exists=True, path_type=Path),
-    help="Image (or folder of images matched by stem) giving the map size.",
-)
+@image_option
 @click.option(
     "--camera",
     default=None,
@@ -74,35 +42,10 @@ def _non_negative(ctx, param, value):
     help="png: KITTI uint16 (depth*256); npy: float32 metres; parquet: "
     "OUT/sparse.parquet, one row per frame with lists u, v, depth.",
 )
-@click.option(
-    "--min-depth",
-    type=float,
-    default=0.1,
-    show_default=True,
-    callback=_non_negative,
-    help="Drop points with depth <= this (metres).",
-)
-@click.option(
-    "--max-depth",
-    type=float,
-    default=None,
-    callback=_positive,
-    help="Drop points with depth > this (metres; default no limit).",
-)
-@click.option(
-    "--resize",
-    type=float,
-    default=None,
-    callback=_positive,
-    metavar="S",
-    help="Scale the image and intrinsics by S first (e.g. 0.5: 1600x900 -> 800x450).",
-)
-@click.option(
-    "--crop",
-    callback=_crop,
-    metavar="TOP,LEFT,H,W",
-    help="Then crop to H x W pixels at (TOP, LEFT), e.g. 100,0,350,800.",
-)
+@min_depth_option
+@max_depth_option
+@resize_option
+@crop_option
 @click.option(
     "--pixel-offset",
     type=click.Choice(["0", "-1"]),
@@ -113,8 +56,10 @@ def _non_negative(ctx, param, value):
 @click.option(
     "--kitti-raw",
     type=click.Path(exists=True, file_okay=False, path_type=Path),
-    metavar="DRIVE_DIR",
-    help="KITTI raw drive (<date>_drive_XXXX_sync); calib from its date folder.",
+    multiple=True,
+    metavar="DIR",
+    help="KITTI raw drive, date folder (all its drives) or root of dates; repeatable. "
+    "Calibration from each drive's date folder.",
 )
 @click.option(
     "--kitti-object",
@@ -126,14 +71,13 @@ def _non_negative(ctx, param, value):
     "--nuscenes",
     type=click.Path(exists=True, file_okay=False, path_type=Path),
     metavar="ROOT",
-    help="nuScenes root (tables in ROOT/<version>/).",
+    help="nuScenes root (tables in ROOT/<nuscenes-version>/).",
 )
 @click.option(
-    "--version",
-    "nuscenes_version",
+    "--nuscenes-version",
     default="v1.0-mini",
     show_default=True,
-    help="nuScenes table version.",
+    help="nuScenes table version (folder under ROOT).",
 )
 @click.option(
     "--sensor",
@@ -167,30 +111,29 @@ def project(
     nuscenes_version,
     sensor,
     sweeps,
-    workers,
-    overwrite,
-    on_error,
-    executor,
-    dask_scheduler,
-    as_json,
+    batch,
 ):
     """Project point clouds to sparse depth maps (nearest point wins, order-free).
 
-    CLOUD may be files or folders (.bin KITTI / .pcd.bin nuScenes / .pcd / .ply / .npy).
-    Writes OUT/<stem>.png (or .npy, or OUT/sparse.parquet) and the calibration of every map,
-    after --resize/--crop, as OUT/calib/<stem>.json.
+    CLOUD may be files or folders (.bin KITTI / .pcd.bin nuScenes / .pcd / .ply / .npy),
+    KITTI raw drives or date folders, or a KITTI object root (their calibration and images
+    are found in the tree). Writes OUT/<sequence>/<frame>.png (or .npy, or
+    OUT/sparse.parquet) and the calibration of every map, after --resize/--crop, as
+    OUT/calib/<sequence>/<frame>.json; a flat folder of clouds has no <sequence>/ level.
+    A rerun skips frames that are up to date, recomputes frames whose inputs changed and
+    refuses other settings (see --overwrite).
 
     \b
     Examples:
       sparsetools project kitti/training/velodyne/000001.bin \\
           --calib kitti/training/calib/000001.txt --image-size 1242x375 -o out/depth
       sparsetools project --kitti-object kitti -o out/depth --pixel-offset -1
-      sparsetools project --kitti-raw 2011_09_26/2011_09_26_drive_0001_sync -o out/raw
+      sparsetools project raw/2011_09_26 -o out/raw       # every drive of the date
       sparsetools project --nuscenes nuscenes --sensor RADAR_FRONT --camera CAM_FRONT \\
           --sweeps 5 --resize 0.5 --crop 100,0,350,800 -o out/radar
     """
-    from ..io.sources import frames_from_paths, kitti_object_frames, kitti_raw_frames
-    from ..pipeline.project import ProjectSettings, nuscenes_tasks, run_project, tasks_from_frames
+    from ..io.sources import cloud_frames, nuscenes_frames
+    from ..pipeline.project import ProjectSettings, project_tasks, run_project
 
     given = [
         name
@@ -207,12 +150,9 @@ def project(
             "give exactly one source: CLOUD..., --kitti-raw, --kitti-object or --nuscenes"
             + (f" (got {', '.join(given)})" if given else "")
         )
-    if clouds and calib is None:
-        raise click.UsageError("CLOUD arguments need --calib")
-    if calib is not None and not clouds:
-        raise click.UsageError(f"--calib goes with CLOUD arguments ({given[0]} has its own)")
-    if image is not None and not clouds:
-        raise click.UsageError(f"--image goes with CLOUD arguments ({given[0]} has its own)")
+    if not clouds and (calib is not None or image is not None):
+        opt = "--calib" if calib is not None else "--image"
+        raise click.UsageError(f"{opt} goes with CLOUD arguments ({given[0]} has its own)")
     if nuscenes:
         cam = camera or "CAM_FRONT"
     elif camera is None:
@@ -235,35 +175,24 @@ def project(
         camera=cam,
         image_size=image_size,
     )
+    kitti_cam = cam if isinstance(cam, int) else 2
     if nuscenes:
         n = sweeps if sweeps is not None else (5 if sensor.upper().startswith("RADAR") else 1)
-        tasks = nuscenes_tasks(
-            nuscenes,
-            out_dir,
-            settings,
-            version=nuscenes_version,
-            sensor=sensor,
-            camera=cam,
-            sweeps=n,
+        frames = nuscenes_frames(
+            nuscenes, version=nuscenes_version, sensor=sensor, camera=cam, sweeps=n
         )
         inputs = [nuscenes]
     else:
-        if clouds:
-            frames = frames_from_paths(list(clouds), calib=calib, image=image)
-            inputs = [*clouds, calib, *([image] if image else [])]
-        elif kitti_raw:
-            frames, inputs = kitti_raw_frames(kitti_raw), [kitti_raw]
-        else:
-            frames, inputs = kitti_object_frames(kitti_object, camera=cam), [kitti_object]
-        tasks = tasks_from_frames(frames, out_dir, settings)
-    params = click.get_current_context().params
-    summary = run_project(
-        tasks,
-        out_dir,
-        inputs=inputs,
-        executor=executor_from(params),
-        overwrite=overwrite,
-        on_error=on_error,
-        progress=progress_enabled(),
-    )
-    emit_summary(summary, as_json=as_json, title=f"sparse depth maps in {out_dir}")
+        sources = list(clouds) or list(kitti_raw) or [kitti_object]
+        frames = cloud_frames(sources, calib=calib, image=image, camera=kitti_cam)
+        inputs = [*sources, *([calib] if calib else []), *([image] if image else [])]
+        missing = [f for f in frames if f.calib is None]
+        if missing:
+            raise click.UsageError(
+                f"no calibration for {missing[0].cloud}: give --calib (a file, a KITTI raw "
+                "date folder or per-frame files), or point CLOUD at a KITTI raw drive / date "
+                "folder or a KITTI object root, whose calibration is found in the tree"
+            )
+    tasks = project_tasks(frames, out_dir, settings)
+    summary = run_project(tasks, out_dir, settings, batch=batch, inputs=inputs)
+    emit_summary(summary, as_json=batch.as_json, title=f"sparse depth maps in {out_dir}")

@@ -8,6 +8,8 @@ from pathlib import Path
 
 import click
 
+from .options import json_option
+
 _COLUMNS = (
     ("points", "points", "{:d}"),
     ("density_percent", "density %", "{:.3f}"),
@@ -46,9 +48,7 @@ def _cell(value, fmt: str) -> str:
     show_default=True,
     help="Reference depths above this (m) are not evaluated.",
 )
-@click.option(
-    "--json", "as_json", is_flag=True, help="Print per-frame and aggregate values as JSON."
-)
+@json_option(help="Print per-frame and aggregate values as JSON.")
 def stats(depth, reference, max_depth, as_json):
     """Points, density and depth range of depth maps; with --reference, intrinsic error.
 
@@ -61,7 +61,7 @@ def stats(depth, reference, max_depth, as_json):
       sparsetools stats out/beams4
       sparsetools stats out/jbf --reference out/lidar --json
     """
-    from ..pipeline.dataset import depth_stats_files
+    from ..pipeline.stats import depth_stats_files
 
     result = depth_stats_files(depth, reference=reference, max_depth=max_depth)
     if as_json:

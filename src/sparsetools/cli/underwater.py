@@ -7,18 +7,12 @@ from pathlib import Path
 
 import click
 
-from .options import batch_options, emit_summary, executor_from, output_dir_option, progress_enabled
+from .options import batch_options, emit_summary, output_dir_option, positive
 
 
 def _odd_window(ctx, param, value):
     if value is not None and (value < 1 or value % 2 == 0):
         raise click.BadParameter(f"the median window must be a positive odd number, got {value}")
-    return value
-
-
-def _positive(ctx, param, value):
-    if value is not None and not (math.isfinite(value) and value > 0):
-        raise click.BadParameter(f"must be > 0, got {value}")
     return value
 
 
@@ -58,7 +52,7 @@ def _a_ref(ctx, param, value):
     type=float,
     default=1e-3,
     show_default=True,
-    callback=_positive,
+    callback=positive,
     help="Smallest factor F kept; pixels below are masked invalid.",
 )
 @click.option(
@@ -77,20 +71,16 @@ def underwater(
     white_balance,
     eps,
     a_ref,
-    workers,
-    overwrite,
-    on_error,
-    executor,
-    dask_scheduler,
-    as_json,
+    batch,
 ):
     """Compensate deep-sea lighting by pixel-wise medians (no light or water model).
 
     Per channel I = A F + B: B is the median of the water-only frames, F the median of a
     centred WINDOW of seafloor frames minus B (shifted to stay full at the ends) divided by
-    A_ref, and the output is A = (I - B) / F. SEAFLOOR_DIR frames are taken in name order.
-    Writes OUT/<stem>.png (albedo in grey levels), OUT/mask/<stem>.png (255 = valid),
-    OUT/backscatter.npy and OUT/underwater.json. Each worker holds WINDOW frames.
+    A_ref, and the output is A = (I - B) / F. SEAFLOOR_DIR frames are taken in name order;
+    each sub-folder is a sequence of its own. Writes OUT/<sequence>/<frame>.png (albedo in
+    grey levels), OUT/mask/<sequence>/<frame>.png (255 = valid), OUT/backscatter.npy and
+    OUT/underwater.json. Each worker holds WINDOW frames.
 
     \b
     Examples:
@@ -108,9 +98,6 @@ def underwater(
         eps=eps,
         a_ref=a_ref,
         white_balance=white_balance,
-        executor=executor_from(locals()),
-        overwrite=overwrite,
-        on_error=on_error,
-        progress=progress_enabled(),
+        batch=batch,
     )
-    emit_summary(summary, as_json=as_json, title=f"compensated frames written to {out_dir}")
+    emit_summary(summary, as_json=batch.as_json, title=f"compensated frames written to {out_dir}")

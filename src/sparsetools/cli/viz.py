@@ -6,6 +6,8 @@ from pathlib import Path
 
 import click
 
+from .options import image_option, max_depth_option, output_dir_option, overwrite_option
+
 
 def _labels_callback(ctx, param, value):
     if value is None:
@@ -13,38 +15,13 @@ def _labels_callback(ctx, param, value):
     return [s.strip() for s in value.split(",")]
 
 
-def _default_labels(paths: list[Path]) -> list[str]:
-    """File stems, or parent/stem when stems repeat (raw/0001.png vs jbf/0001.png)."""
-    stems = [p.stem for p in paths]
-    if len(set(stems)) == len(stems):
-        return stems
-    return [f"{p.parent.name}/{p.stem}" for p in paths]
-
-
 @click.command("viz")
 @click.argument(
     "depth", nargs=-1, required=True, type=click.Path(exists=True, dir_okay=False, path_type=Path)
 )
-@click.option(
-    "--image",
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
-    help="Camera image under the points (default: black).",
-)
-@click.option(
-    "-o",
-    "--out",
-    "out_path",
-    required=True,
-    type=click.Path(dir_okay=False, path_type=Path),
-    help="Output picture (.png or .jpg).",
-)
-@click.option(
-    "--max-depth",
-    type=click.FloatRange(min=0, min_open=True),
-    default=80.0,
-    show_default=True,
-    help="Depth (m) shown in red; 0 m is blue (turbo).",
-)
+@image_option(help="Camera image under the points (default: black).")
+@output_dir_option(file=True, help="Output picture (.png or .jpg); an up-to-date picture is kept.")
+@max_depth_option(default=80.0, help="Depth (m) shown in red; 0 m is blue (turbo).")
 @click.option(
     "--dilate",
     type=click.IntRange(min=0, max=50),
@@ -65,11 +42,11 @@ def _default_labels(paths: list[Path]) -> list[str]:
     help="Panel labels (default: file names); '' for none.",
 )
 @click.option("--no-colorbar", is_flag=True, help="Leave out the colour bar.")
-@click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
+@overwrite_option(help="Replace OUT even if it was not written by viz.")
 def viz(
     depth,
     image,
-    out_path,
+    out_dir,
     max_depth,
     dilate,
     side_by_side,
@@ -89,35 +66,27 @@ def viz(
       sparsetools viz --side-by-side out/b1/000000.png out/b4/000000.png out/b16/000000.png \\
           --image out/scene/image_2/000000.png --labels "1 beam,4 beams,16 beams" -o beams.png
     """
-    from ..io.dataset import read_depth_file
-    from ..io.image import read_image, write_image
-    from ..ops.viz import depth_panels
+    from ..pipeline.viz import VizSettings, default_labels, render_viz
 
+    if out_dir.suffix.lower() not in (".png", ".jpg", ".jpeg"):
+        raise click.BadParameter("output must be .png or .jpg", param_hint="--out")
     if labels is not None and labels != [""] and len(labels) != len(depth):
         raise click.BadParameter(
             f"{len(labels)} label(s) for {len(depth)} depth map(s)", param_hint="--labels"
         )
-    if out_path.suffix.lower() not in (".png", ".jpg", ".jpeg"):
-        raise click.BadParameter("output must be .png or .jpg", param_hint="--out")
-    inputs = {p.resolve() for p in (*depth, *([image] if image is not None else []))}
-    if out_path.resolve() in inputs:
-        from ..errors import OutputError
-
-        raise OutputError(f"output {out_path} would replace an input file: choose another -o")
     if labels is None:
-        labels = _default_labels(list(depth)) if len(depth) > 1 else None
+        labels = default_labels(list(depth)) if len(depth) > 1 else None
     elif labels == [""]:
         labels = None
-    maps = [read_depth_file(p) for p in depth]
-    rgb = read_image(image) if image is not None else None
-    picture = depth_panels(
-        rgb,
-        maps,
-        labels=labels,
+    settings = VizSettings(
         max_depth=max_depth,
         dilate=dilate,
-        vertical=not horizontal,
-        with_colorbar=not no_colorbar,
+        horizontal=horizontal,
+        labels=None if labels is None else tuple(labels),
+        colorbar=not no_colorbar,
     )
-    write_image(out_path, picture, overwrite=overwrite)
-    click.echo(f"wrote {out_path} ({picture.shape[1]}x{picture.shape[0]})")
+    status, size = render_viz(list(depth), out_dir, settings, image=image, overwrite=overwrite)
+    if status == "written":
+        click.echo(f"wrote {out_dir} ({size[0]}x{size[1]})")
+    else:
+        click.echo(f"{out_dir} is up to date")

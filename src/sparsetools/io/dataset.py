@@ -21,21 +21,19 @@ The schema version is stored in the Parquet key-value metadata under
 
 from __future__ import annotations
 
-import bisect
 import hashlib
 import json
 import os
-from collections import OrderedDict
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator
 from pathlib import Path, PurePosixPath
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from ..errors import FormatError, ParameterError
+from ..errors import FormatError
 from .atomic import atomic_path
-from .image import decode_depth_png, read_depth_png, read_image
+from .image import decode_depth_png, read_depth_png
 
 __all__ = [
     "MANIFEST_NAME",
@@ -45,7 +43,6 @@ __all__ = [
     "PART_SCHEMA",
     "SCHEMA_VERSION",
     "SPARSE_DIR",
-    "DatasetReader",
     "bytes_sha256",
     "check_relative_path",
     "decode_depth_bytes",
@@ -63,13 +60,16 @@ __all__ = [
 ]
 
 #: Version of the manifest / part layout. Bump on any incompatible change.
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+#: Columns added in schema version 2 (null when a version-1 manifest is read).
+V2_COLUMNS = ("frame_index", "timestamp", "T_world_cam")
 MANIFEST_NAME = "manifest.parquet"
 SPARSE_DIR = "sparse"
 METADATA_VERSION_KEY = b"sparsetools.schema_version"
 METADATA_INFO_KEY = b"sparsetools.dataset"
 #: uint16 pixel coordinates bound the image size of the Parquet sparse format.
-MAX_SIDE = 65535
+#: Largest image side whose pixel coordinates fit uint16 (0..65535).
+MAX_SIDE = 65536
 
 MANIFEST_SCHEMA = pa.schema(
     [
@@ -99,6 +99,10 @@ MANIFEST_SCHEMA = pa.schema(
         pa.field("gt_sha256", pa.string()),
         pa.field("confidence_sha256", pa.string()),
         pa.field("generation_params", pa.string()),
+        # version 2: order within the sequence (neighbours for video training), time, pose
+        pa.field("frame_index", pa.int32()),
+        pa.field("timestamp", pa.float64()),
+        pa.field("T_world_cam", pa.list_(pa.float64())),
     ]
 )
 
@@ -209,13 +213,9 @@ def depth_to_points(depth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
     depth : (N,) float32
         The stored values, bit for bit.
     """
-    depth = np.asarray(depth)
-    if depth.ndim != 2:
-        raise ParameterError(f"depth must be (H, W), got shape {depth.shape}")
-    if max(depth.shape) > MAX_SIDE:
-        raise ParameterError(f"depth maps larger than {MAX_SIDE} px cannot use uint16 pixels")
-    v, u = np.nonzero(depth)
-    return u.astype(np.uint16), v.astype(np.uint16), depth[v, u].astype(np.float32)
+    from ..ops.projection import sparse_from_depth
+
+    return sparse_from_depth(depth)
 
 
 def points_to_depth(
@@ -386,6 +386,10 @@ def read_manifest(path: str | os.PathLike) -> tuple[pa.Table, dict]:
             f"{path}: schema version {version} was written by a newer sparsetools "
             f"(this one reads up to {SCHEMA_VERSION})"
         )
+    for name in V2_COLUMNS:
+        if version < 2 and name not in table.column_names:
+            typ = MANIFEST_SCHEMA.field(name).type
+            table = table.append_column(name, pa.nulls(table.num_rows, type=typ))
     missing = [f.name for f in MANIFEST_SCHEMA if f.name not in table.column_names]
     if missing:
         raise FormatError(f"{path}: manifest lacks column(s) {', '.join(missing)}")
@@ -485,241 +489,3 @@ def part_rows(
     for i, fid in enumerate(ids):
         u, v, d = (vals[off[i] : off[i + 1]] for off, vals in cols)
         yield fid, u, v, d, int(heights[i]), int(widths[i])
-
-
-class _PartCache:
-    """Random access to rows of sparse parts: open files and a few decoded row groups."""
-
-    def __init__(self, max_groups: int = 4):
-        self.files: dict[Path, tuple[pq.ParquetFile, list[int]]] = {}
-        self.groups: OrderedDict[tuple[Path, int], list] = OrderedDict()
-        self.max_groups = max_groups
-
-    def row(self, path: Path, row: int):
-        if path not in self.files:
-            try:
-                pf = pq.ParquetFile(path)
-            except (pa.ArrowException, OSError) as exc:
-                raise FormatError(f"{path}: cannot read the sparse part ({_brief(exc)})") from exc
-            starts = [0]
-            for g in range(pf.num_row_groups):
-                starts.append(starts[-1] + pf.metadata.row_group(g).num_rows)
-            self.files[path] = (pf, starts)
-        pf, starts = self.files[path]
-        if not 0 <= row < starts[-1]:
-            raise FormatError(f"{path}: no row {row} (the part has {starts[-1]} rows)")
-        g = bisect.bisect_right(starts, row) - 1
-        key = (path, g)
-        rows = self.groups.get(key)
-        if rows is None:
-            try:
-                table = pf.read_row_group(g, columns=PART_SCHEMA.names).cast(PART_SCHEMA)
-                table.validate(full=True)
-            except (pa.ArrowException, OSError) as exc:
-                raise FormatError(f"{path}: cannot decode row group {g} ({_brief(exc)})") from exc
-            rows = list(part_rows(table))
-            self.groups[key] = rows
-            while len(self.groups) > self.max_groups:
-                self.groups.popitem(last=False)
-        else:
-            self.groups.move_to_end(key)
-        return rows[row - starts[g]]
-
-
-# -- reader --------------------------------------------------------------------------------------
-class DatasetReader:
-    """Read a sparsetools dataset sample by sample (the base of the training Dataset).
-
-    Parameters
-    ----------
-    path : path-like
-        The dataset folder (holding ``manifest.parquet``).
-    split : str, optional
-        Only the samples of this split (same as ``DatasetReader(path).split(name)``).
-
-    Attributes
-    ----------
-    root : Path
-    manifest : pyarrow.Table
-        The manifest rows of this reader (of its split only, when one is chosen).
-    info : dict
-        ``schema_version`` and the build information from the manifest metadata.
-
-    Notes
-    -----
-    The reader is cheap to pickle (open files and caches are dropped), so a torch
-    ``Dataset`` can hold one and be used with ``DataLoader(num_workers=N)``.
-
-    Examples
-    --------
-    >>> ds = DatasetReader("out/dataset").split("train")      # doctest: +SKIP
-    >>> s = ds.sample(0)                                        # doctest: +SKIP
-    >>> s["rgb"].shape, s["sparse"].dtype, s["intrinsics"]      # doctest: +SKIP
-    """
-
-    def __init__(self, path: str | os.PathLike, *, split: str | None = None):
-        self.root = Path(path)
-        table, info = read_manifest(self.root / MANIFEST_NAME)
-        self._init(table, info, split)
-
-    def _init(self, table: pa.Table, info: dict, split: str | None) -> None:
-        self._all = table
-        self.info = info
-        if split is not None:
-            names = sorted({s for s in table.column("split").to_pylist() if s is not None})
-            if split not in names:
-                raise ParameterError(
-                    f"no split '{split}' in {self.root} (has: {', '.join(names) or 'none'})"
-                )
-            import pyarrow.compute as pc
-
-            table = table.filter(pc.equal(table.column("split"), split))
-        self.split_name = split
-        self.manifest = table
-        self._rows = table.to_pylist()
-        self._index = {r["id"]: i for i, r in enumerate(self._rows)}
-        self._parts = _PartCache()
-
-    # -- container protocol
-    def __len__(self) -> int:
-        return len(self._rows)
-
-    def __iter__(self) -> Iterator[dict]:
-        for i in range(len(self)):
-            yield self.sample(i)
-
-    def __getitem__(self, key: int | str) -> dict:
-        return self.sample(key)
-
-    def __getstate__(self):
-        state = self.__dict__.copy()
-        state["_parts"] = None
-        return state
-
-    def __setstate__(self, state):
-        self.__dict__.update(state)
-        self._parts = _PartCache()
-
-    def __repr__(self) -> str:
-        where = f", split={self.split_name!r}" if self.split_name else ""
-        return f"DatasetReader({str(self.root)!r}{where}, samples={len(self)})"
-
-    # -- views
-    @property
-    def ids(self) -> list[str]:
-        return [r["id"] for r in self._rows]
-
-    @property
-    def splits(self) -> list[str]:
-        """Names of the splits present in the whole dataset."""
-        return sorted({s for s in self._all.column("split").to_pylist() if s is not None})
-
-    def split(self, name: str) -> DatasetReader:
-        """A reader over the samples of split ``name`` only."""
-        view = object.__new__(DatasetReader)
-        view.root = self.root
-        view._init(self._all, self.info, name)
-        return view
-
-    def row(self, key: int | str) -> dict:
-        """The manifest row of a sample (by position or id) as a dict."""
-        if isinstance(key, str):
-            if key not in self._index:
-                raise ParameterError(f"no sample '{key}' in {self}")
-            return self._rows[self._index[key]]
-        i = int(key)
-        if not -len(self) <= i < len(self):
-            raise IndexError(f"sample {i} out of range ({len(self)} samples)")
-        return self._rows[i]
-
-    def path(self, rel: str, *, what: str = "path") -> Path:
-        """Absolute path of a manifest path, refusing anything outside the dataset."""
-        return resolve_in_dataset(self.root, rel, what=what)
-
-    # -- data
-    def sparse_points(self, key: int | str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(u, v, depth) of a sample's sparse depth (uint16, uint16, float32 metres)."""
-        r = self.row(key)
-        if r["sparse_parquet"] is not None:
-            fid, u, v, d, h, w = self._parts.row(
-                self.path(r["sparse_parquet"], what="sparse_parquet"), int(r["sparse_row"])
-            )
-            if fid != r["id"] or (h, w) != (r["height"], r["width"]):
-                raise FormatError(
-                    f"{r['sparse_parquet']} row {r['sparse_row']} holds '{fid}' ({w}x{h}), "
-                    f"expected '{r['id']}' ({r['width']}x{r['height']})"
-                )
-            return u, v, d
-        return depth_to_points(self._read_sparse_png(r))
-
-    def _read_sparse_png(self, r: dict) -> np.ndarray:
-        if r["sparse_path"] is None:
-            raise FormatError(f"sample '{r['id']}' has no sparse depth")
-        return self._checked(
-            read_depth_png(self.path(r["sparse_path"], what="sparse_path")), r, "sparse"
-        )
-
-    @staticmethod
-    def _checked(arr: np.ndarray, r: dict, what: str) -> np.ndarray:
-        if arr.shape[:2] != (r["height"], r["width"]):
-            raise FormatError(
-                f"sample '{r['id']}': {what} is {arr.shape[1]}x{arr.shape[0]}, "
-                f"the manifest says {r['width']}x{r['height']}"
-            )
-        return arr
-
-    def sample(self, key: int | str) -> dict:
-        """Load one sample.
-
-        Parameters
-        ----------
-        key : int or str
-            Position in this reader, or sample id.
-
-        Returns
-        -------
-        dict
-            ``id``, ``sequence``, ``frame``, ``split`` (str);
-            ``rgb`` (H, W, 3) uint8;
-            ``sparse`` (H, W) float32 metres, 0 = empty (from the Parquet points when
-            present: bit-exact, else from the PNG);
-            ``gt`` (H, W) float32 metres or None; ``confidence`` (H, W) float32 or None;
-            ``intrinsics`` (3, 3) float64 K or None.
-        """
-        r = self.row(key)
-        rgb = self._checked(read_image(self.path(r["rgb_path"], what="rgb_path")), r, "rgb")
-        if r["sparse_parquet"] is not None:
-            u, v, d = self.sparse_points(key)
-            sparse = points_to_depth(u, v, d, r["height"], r["width"])
-        else:
-            sparse = self._read_sparse_png(r)
-        gt = None
-        if r["gt_path"] is not None:
-            gt = self._checked(read_depth_file(self.path(r["gt_path"], what="gt_path")), r, "gt")
-        confidence = None
-        if r["confidence_path"] is not None:
-            confidence = self._checked(
-                read_confidence_file(self.path(r["confidence_path"], what="confidence_path")),
-                r,
-                "confidence",
-            )
-        K = None
-        if r["fx"] is not None:
-            K = np.array(
-                [[r["fx"], 0.0, r["cx"]], [0.0, r["fy"], r["cy"]], [0.0, 0.0, 1.0]],
-                dtype=np.float64,
-            )
-        return {
-            "id": r["id"],
-            "sequence": r["sequence"],
-            "frame": r["frame"],
-            "split": r["split"],
-            "rgb": rgb,
-            "sparse": sparse,
-            "gt": gt,
-            "confidence": confidence,
-            "intrinsics": K,
-        }
-
-    def samples(self, keys: Sequence[int | str]) -> list[dict]:
-        return [self.sample(k) for k in keys]

@@ -19,6 +19,7 @@ __all__ = [
     "decode_depth_png",
     "encode_depth_png",
     "image_header_size",
+    "image_size_of",
     "imdecode_captured",
     "import_cv2",
     "read_depth_png",
@@ -73,6 +74,34 @@ def image_header_size(data: bytes) -> tuple[int, int] | None:
                 return int(w), int(h)
             i += 2 + seg_len
     return None
+
+
+def image_size_of(path: str | os.PathLike) -> tuple[int, int]:
+    """(width, height) of a PNG or JPEG from its header, without decoding the pixels.
+
+    Raises
+    ------
+    FormatError
+        Missing file, or a header that is neither PNG nor JPEG.
+    """
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(1 << 16)
+            size = image_header_size(head)
+            if size is None and head[:2] == b"\xff\xd8":
+                # A JPEG's frame header can follow a large EXIF block.
+                size = image_header_size(head + fh.read())
+    except FileNotFoundError as exc:
+        raise FormatError(f"{path}: no such image") from exc
+    except IsADirectoryError as exc:
+        raise FormatError(f"{path}: is a folder, expected an image") from exc
+    except OSError as exc:
+        raise FormatError(f"{path}: cannot read ({exc.strerror or exc})") from exc
+    if size is None or size[0] <= 0 or size[1] <= 0:
+        raise FormatError(f"{path}: not a PNG or JPEG image (cannot read its size)")
+    check_pixel_count(*size, f"{path}: declared size")
+    return size
 
 
 def _read_bytes(path: Path, what: str) -> bytes:

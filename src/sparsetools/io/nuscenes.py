@@ -275,6 +275,8 @@ class NuScenesTables:
     """
 
     TABLES = ("sample", "sample_data", "calibrated_sensor", "ego_pose", "sensor")
+    #: Read when present: scene names (frame sequences) and descriptions (day / night).
+    OPTIONAL_TABLES = ("scene", "log")
 
     def __init__(self, root: str | os.PathLike, version: str = "v1.0-mini"):
         self.root = Path(root)
@@ -293,6 +295,23 @@ class NuScenesTables:
             if not isinstance(rows, list):
                 raise FormatError(f"{f}: expected a JSON list of records")
             self._tables[name] = _index_records(rows, name, f)
+        for name in self.OPTIONAL_TABLES:
+            f = folder / f"{name}.json"
+            if not f.is_file():
+                self._tables[name] = {}
+                continue
+            try:
+                rows = json.loads(f.read_text(encoding="utf-8"))
+            except (json.JSONDecodeError, UnicodeDecodeError, OSError) as exc:
+                raise FormatError(f"{f}: not valid JSON ({exc})") from exc
+            if not isinstance(rows, list):
+                raise FormatError(f"{f}: expected a JSON list of records")
+            self._tables[name] = _index_records(rows, name, f)
+        self.table_files = tuple(
+            folder / f"{n}.json"
+            for n in (*self.TABLES, *self.OPTIONAL_TABLES)
+            if (folder / f"{n}.json").is_file()
+        )
         try:
             self._channel_of_cs = {
                 tok: self._tables["sensor"][cs["sensor_token"]]["channel"]
@@ -317,6 +336,17 @@ class NuScenesTables:
     def samples(self) -> list[dict]:
         """All samples, sorted by timestamp."""
         return sorted(self._tables["sample"].values(), key=lambda s: s["timestamp"])
+
+    def scene(self, sample: dict) -> dict | None:
+        """The scene record of a sample (None when scene.json is absent or lacks it)."""
+        return self._tables["scene"].get(sample.get("scene_token"))
+
+    def scene_name(self, sample: dict) -> str:
+        """The sample's scene name (``scene-0061``); its scene token without scene.json."""
+        scene = self.scene(sample)
+        if scene is not None and scene.get("name"):
+            return str(scene["name"])
+        return str(sample.get("scene_token") or "")
 
     def channel(self, sample_data: dict) -> str:
         try:

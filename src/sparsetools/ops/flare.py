@@ -13,8 +13,8 @@ Flare7K's captured patterns cannot be fetched here, so a seeded bank is synthesi
 
 Patterns are stored like Flare7K's, as display-referred values in [0, 1] (the linear PSF is
 amplified so the core saturates, clipped and encoded with exponent 1/2.2); the composer
-linearises them with the image's random gamma. The bank is deterministic from its seed,
-cached in memory and optionally in an ``.npz`` file.
+linearises them with the image's random gamma. The bank is deterministic from its seed and
+cached in memory (an on-disk copy is :mod:`sparsetools.io.flare_bank`).
 """
 
 from __future__ import annotations
@@ -22,13 +22,11 @@ from __future__ import annotations
 import functools
 import logging
 import math
-import os
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 
 import numpy as np
 
-from ..errors import ParameterError, SparsetoolsError
+from ..errors import ParameterError
 
 __all__ = [
     "BANK_VERSION",
@@ -235,91 +233,29 @@ def build_flare_bank(
     return FlareBank(seed, size, patterns, ghost_arr, tuple(m[1] for m in made))
 
 
-def _bank_file(cache_dir: Path, seed: int, count: int, size: int) -> Path:
-    return cache_dir / f"flare-bank-v{BANK_VERSION}-s{seed}-n{count}-p{size}.npz"
-
-
-def _load_bank(path: Path, seed: int, count: int, size: int) -> FlareBank | None:
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            patterns = z["patterns"]
-            ghost_arr = z["ghosts"]
-            desc = tuple(str(s) for s in z["descriptions"])
-            meta = z["meta"]
-    except Exception as exc:  # a corrupt zip/npy raises many types; a cache is just rebuilt
-        log.warning("ignoring unreadable flare bank cache %s (%s); rebuilding it", path, exc)
-        return None
-    if (
-        meta.shape != (4,)
-        or meta.dtype.kind not in "iu"
-        or tuple(int(v) for v in meta) != (BANK_VERSION, seed, count, size)
-        or patterns.shape != (count, size, size, 3)
-        or patterns.dtype != np.float32
-        or ghost_arr.ndim != 3
-        or ghost_arr.dtype.kind != "f"
-        or ghost_arr.shape[0] < 1
-        or len(desc) != count
-    ):
-        log.warning("flare bank cache %s does not match its name; rebuilding it", path)
-        return None
-    return FlareBank(seed, size, patterns, ghost_arr.astype(np.float32), desc)
-
-
-def _save_bank(path: Path, bank: FlareBank) -> None:
-    from ..io.atomic import atomic_path
-
-    try:
-        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-            np.savez_compressed(
-                fh,
-                patterns=bank.patterns,
-                ghosts=bank.ghosts,
-                descriptions=np.array(bank.descriptions),
-                meta=np.array([BANK_VERSION, bank.seed, bank.count, bank.size], np.int64),
-            )
-    except (OSError, SparsetoolsError) as exc:  # a cache only saves time: never fail for it
-        log.warning("cannot write flare bank cache %s: %s", path, exc)
-
-
 @functools.lru_cache(maxsize=8)
-def _cached_bank(seed: int, count: int, size: int, cache_dir: str | None) -> FlareBank:
-    bank = None
-    path = None
-    if cache_dir is not None:
-        path = _bank_file(Path(cache_dir), seed, count, size)
-        if path.is_file():
-            bank = _load_bank(path, seed, count, size)
-    if bank is None:
-        bank = build_flare_bank(seed=seed, count=count, size=size)
-        if path is not None:
-            _save_bank(path, bank)
+def _cached_bank(seed: int, count: int, size: int) -> FlareBank:
+    bank = build_flare_bank(seed=seed, count=count, size=size)
     bank.patterns.setflags(write=False)  # shared by every caller of the cache
     bank.ghosts.setflags(write=False)
     return bank
 
 
-def flare_bank(
-    *, seed: int = 0, count: int = 16, size: int = 256, cache_dir: str | os.PathLike | None = None
-) -> FlareBank:
+def flare_bank(*, seed: int = 0, count: int = 16, size: int = 256) -> FlareBank:
     """The flare bank for (seed, count, size), built once per process and reused.
 
     Parameters
     ----------
     seed, count, size : int
         See :func:`build_flare_bank`.
-    cache_dir : path-like, optional
-        Folder for an ``.npz`` copy: loaded when present (a process pool builds the bank once
-        in all), written atomically otherwise. The file holds exactly the in-memory arrays,
-        so results do not depend on whether the cache was used.
 
     Returns
     -------
     FlareBank
-        Read-only arrays.
+        Read-only arrays. An on-disk copy (to build it once for a whole process pool) is
+        :func:`sparsetools.io.flare_bank.cached_flare_bank`.
     """
-    return _cached_bank(
-        int(seed), int(count), int(size), None if cache_dir is None else str(Path(cache_dir))
-    )
+    return _cached_bank(int(seed), int(count), int(size))
 
 
 # --------------------------------------------------------------------------- placement

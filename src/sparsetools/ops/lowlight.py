@@ -69,14 +69,19 @@ class LowLightParams:
     ghosts : bool
         Add ghost reflections along the line through the image centre.
     noise : {"eld", "gaussian", "none"}
-        ELD (Tukey-lambda read noise), the same with Gaussian read noise, or no noise.
+        ELD (Tukey-lambda read noise), the same with Gaussian read noise (ELD's separate
+        Gaussian fit of the read-noise scale), or no noise.
     camera : str
-        ELD profile: SonyA7S2, NikonD850, CanonEOS70D, or "random" (one per image).
+        ELD camera table: SonyA7S2, NikonD850, CanonEOS70D, CanonEOS700D, CanonEOS5D4, or
+        "random" (one per image).
     ratio : (float, float)
         Exposure ratio ``~ logU``: the linear image in [0, 1] spans ``saturation / ratio`` DN.
         2-32 gives visible night-street noise; ELD's extreme low light is 100-300.
     bank_seed, bank_count, bank_size : int
         Flare bank (see :func:`sparsetools.ops.flare.flare_bank`).
+    color_bias : bool
+        Add the camera table's per-channel black-level offsets (ELD ``color_bias``) of the
+        drawn calibration row; off by default.
     """
 
     brightness: tuple[float, float] = (0.4, 1.0)
@@ -93,6 +98,7 @@ class LowLightParams:
     bank_seed: int = 0
     bank_count: int = 16
     bank_size: int = 256
+    color_bias: bool = False
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__  # frozen: normalise the tuples once
@@ -107,6 +113,8 @@ class LowLightParams:
         set_(self, "flare_count", (int(lo), int(hi)))
         if not (math.isfinite(self.flare_max_depth) and self.flare_max_depth > 0):
             raise ParameterError(f"flare max depth must be > 0 m, got {self.flare_max_depth}")
+        if not isinstance(self.color_bias, (bool, np.bool_)):
+            raise ParameterError(f"color_bias must be True or False, got {self.color_bias!r}")
         if self.noise not in NOISE_MODELS:
             raise ParameterError(
                 f"unknown noise model '{self.noise}' (choose {', '.join(NOISE_MODELS)})"
@@ -144,7 +152,9 @@ class LowLightRecord:
     bank_seed, bank_count, bank_size, bank_version : int
         Which flare bank the pattern ids refer to.
     noise : NoiseParams
-        Camera, gain ``K``, ratio, Tukey lambda, read and row sigmas and the noise seed.
+        Camera, gain ``K``, ratio, Tukey lambda (and its table row), read and row sigmas,
+        colour bias and the noise seed. Records written before the camera tables were used
+        lack ``color_bias`` / ``table_row`` and replay exactly as before.
     version : int
         Record layout version.
     """
@@ -224,6 +234,7 @@ class LowLightRecord:
             "noise_model": n.model, "camera": n.camera, "system_gain": n.system_gain,
             "ratio": n.ratio, "saturation": n.saturation, "tukey_lambda": n.tukey_lambda,
             "sigma_read": n.sigma_read, "sigma_row": n.sigma_row, "noise_seed": n.seed,
+            "color_bias": list(n.color_bias), "noise_table_row": n.table_row,
         }  # fmt: skip
 
 
@@ -321,7 +332,7 @@ def _sample(
     else:
         drawn = {"source": "off", "scale": 0.0, "amount": 0.0, "count": 0, "flares": []}
     noise = sample_noise_params(noise_rng, camera=params.camera, model=params.noise,
-                                ratio_range=params.ratio)  # fmt: skip
+                                ratio_range=params.ratio, color_bias=params.color_bias)  # fmt: skip
     return LowLightRecord(
         height=height, width=width, brightness=s_b, gamma=gamma,
         flare_source=drawn["source"], flare_scale=drawn["scale"], flare_amount=drawn["amount"],
@@ -361,7 +372,6 @@ def lowlight(
     params: LowLightParams | None = None,
     record: LowLightRecord | dict | None = None,
     bank: FlareBank | None = None,
-    bank_cache: str | None = None,
 ) -> tuple[np.ndarray, LowLightRecord]:
     """Turn a day image into a synthetic night image (flares + ELD sensor noise).
 
@@ -383,9 +393,8 @@ def lowlight(
         Replay: use these values instead of sampling; the output is identical to the run
         that produced the record.
     bank : FlareBank, optional
-        Flare patterns; default the cached bank named by ``params`` (or the record).
-    bank_cache : path-like, optional
-        Folder for the on-disk copy of the bank (see :func:`~sparsetools.ops.flare.flare_bank`).
+        Flare patterns; default the bank named by ``params`` (or the record), built once per
+        process (:func:`~sparsetools.ops.flare.flare_bank`).
 
     Returns
     -------
@@ -430,8 +439,7 @@ def lowlight(
         need_bank = params.flare
     if need_bank:
         if bank is None:
-            bank = flare_bank(seed=bank_key[0], count=bank_key[1], size=bank_key[2],
-                              cache_dir=bank_cache)  # fmt: skip
+            bank = flare_bank(seed=bank_key[0], count=bank_key[1], size=bank_key[2])
         elif (bank.seed, bank.count, bank.size) != bank_key:
             raise ParameterError(
                 f"flare bank (seed {bank.seed}, {bank.count} patterns of {bank.size} px) does not "

@@ -277,7 +277,7 @@ def sparse_from_depth(depth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
     depth = np.asarray(depth)
     if depth.ndim != 2:
         raise ParameterError(f"depth must be (H, W), got shape {depth.shape}")
-    if max(depth.shape) > 65536:
+    if max(depth.shape) > 65536:  # coordinates 0..65535 fit uint16
         raise ParameterError(f"depth map {depth.shape} too large for uint16 pixel coordinates")
     valid = np.isfinite(depth) & (depth > 0)
     v, u = np.nonzero(valid)

@@ -20,33 +20,33 @@ from __future__ import annotations
 
 import logging
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import FormatError, OutputError, ParameterError, SparsetoolsError
-from ..ops.beams import (
+from ..errors import FormatError, ParameterError, SparsetoolsError
+from ..io.sensor_profile import load_sensor_profile
+from ..io.sources import Frame
+from ..ops.beams import SELECT_MODES, horizon_rings, pl_line_spec, select_beams, uniform_rings
+from ..ops.lidar_profile import SensorProfile
+from ..ops.rings import (
     RING_METHODS,
-    SELECT_MODES,
-    SensorProfile,
     cone_residual_deg,
-    horizon_rings,
-    load_sensor_profile,
-    pl_line_spec,
     recover_rings_with_method,
     ring_elevations,
     ring_table,
-    select_beams,
-    uniform_rings,
 )
-from .core import FrameTask, check_output_dir, run_frames
+from ..validate import check_choice, check_non_negative
+from .batch import Batch, RunSummary
+from .core import FrameTask, RunSpec, check_output_dir, run_frames
 
 __all__ = [
     "FORMATS",
     "PROFILE_TOLERANCE_DEG",
+    "BeamsInput",
+    "BeamsJob",
     "BeamsSettings",
-    "beams_frame",
     "beams_tasks",
     "plan_selection",
     "read_cloud_strict",
@@ -93,25 +93,20 @@ class BeamsSettings:
     select: str | None = None
     rings: tuple[int, ...] | None = None
     ring_method: str | None = None
-    n_lasers: int | None = None
+    n_lasers: int | None = field(default=None, metadata={"option": "--lasers"})
     profile: str | None = "auto"
     line_spec: tuple[int, ...] | None = None
     pl_width: int = 1024
     pl_height: int = 64
-    fmt: str = "bin"
+    fmt: str = field(default="bin", metadata={"option": "--format"})
     far_range: float = 20.0
 
     def __post_init__(self) -> None:
-        if self.fmt not in FORMATS:
-            raise ParameterError(f"unknown format {self.fmt!r} (choose {', '.join(FORMATS)})")
-        if self.select is not None and self.select not in SELECT_MODES:
-            raise ParameterError(
-                f"unknown selection {self.select!r} (choose {', '.join(SELECT_MODES)})"
-            )
-        if self.ring_method is not None and self.ring_method not in RING_METHODS:
-            raise ParameterError(
-                f"unknown ring method {self.ring_method!r} (choose {', '.join(RING_METHODS)})"
-            )
+        check_choice(self.fmt, "--format", FORMATS)
+        if self.select is not None:
+            check_choice(self.select, "select", SELECT_MODES)
+        if self.ring_method is not None:
+            check_choice(self.ring_method, "ring_method", RING_METHODS)
         n = tuple(int(v) for v in self.n)
         object.__setattr__(self, "n", n)
         if any(v < 1 for v in n):
@@ -136,8 +131,7 @@ class BeamsSettings:
             raise ParameterError("give the number of beams (--n), --rings or --line-spec")
         if self.n_lasers is not None and not 1 <= self.n_lasers <= 256:
             raise ParameterError(f"--lasers must be in 1..256, got {self.n_lasers}")
-        if not (np.isfinite(self.far_range) and self.far_range >= 0):
-            raise ParameterError(f"far range must be >= 0 m, got {self.far_range}")
+        check_non_negative(self.far_range, "far_range")
 
     @property
     def mode(self) -> str:
@@ -379,8 +373,7 @@ def _output_suffix(settings: BeamsSettings, cloud: Path) -> str:
 
 def _frame_calibration(calib_path, image, image_size, camera=2):
     from ..io.calib import load_calibration
-    from ..io.image import check_pixel_count
-    from ..io.sources import image_size_of
+    from ..io.image import check_pixel_count, image_size_of
 
     calib = load_calibration(calib_path, camera=camera)
     if image_size is not None:
@@ -404,134 +397,154 @@ def _density_pct(points: np.ndarray, calib) -> tuple[float, int]:
     return 100.0 * valid / depth.size, valid
 
 
-def beams_frame(task: FrameTask) -> dict:
-    """Recover rings, keep every output set's beams and write them (atomically).
+@dataclass(frozen=True)
+class BeamsInput:
+    """One frame's inputs: its cloud and (for density and pl++) calibration and image."""
 
-    Returns
-    -------
-    dict
-        points_in, ring_method (``elevation`` after a fall back), rings_found,
-        kept_<label> per output set and, with a calibration, density_<label>_pct and
-        density_all_pct (the full cloud).
+    cloud: str
+    calib_path: str | None = None
+    image: str | None = None
+
+
+@dataclass(frozen=True)
+class BeamsJob:
+    """The per-frame job of ``beams`` (picklable): recover rings, keep every output set's
+    beams and write them (atomically).
+
+    Returns per frame: points_in, ring_method (``elevation`` after a fall back), rings_found,
+    kept_<label> per output set and, with a calibration, density_<label>_pct and
+    density_all_pct (the full cloud).
     """
-    from ..io.pointcloud import write_points
 
-    inputs = task.inputs
-    settings: BeamsSettings = inputs["settings"]
-    plan: _Plan = inputs["plan"]
-    cloud = Path(inputs["cloud"])
-    points = read_cloud_strict(cloud)
-    needs_rings = any(rings is not None for _, _, rings, _ in plan.items)
-    calib = None
-    if inputs.get("calib_path") is not None:
-        calib = _frame_calibration(inputs["calib_path"], inputs.get("image"), inputs["image_size"])
-    stats: dict = {"points_in": int(points.shape[0])}
-    ring = None
-    n_lasers = _resolved(settings, cloud)[1]
-    if needs_rings:
-        ring, used, n_lasers = recover_cloud_rings(points, cloud, settings)
-        stats["ring_method"] = used
-        stats["ring_fallback"] = int(used != _resolved(settings, cloud)[0])
-        stats["rings_found"] = int(np.unique(ring).size)
-    selections = []
-    for label, n, rings, spec in plan.items:  # select everything first: errors write nothing
-        if rings is not None:
-            sel = select_beams(points, ring, rings=rings, n_lasers=n_lasers)
-        else:
-            if calib is None:
-                raise ParameterError("pl++ needs --calib (its image-FOV pre-filter)")
-            sel = select_beams(
-                points,
-                line_spec=spec,
-                calib=calib,
-                pl_width=settings.pl_width,
-                pl_height=settings.pl_height,
-            )
-        selections.append((label or f"n{n}", sel))
-    for (key, sel), out in zip(selections, inputs["outputs"], strict=True):
-        write_points(out, sel.points)
-        stats[f"kept_{key}"] = int(sel.index.size)
+    settings: BeamsSettings
+    plan: _Plan
+    image_size: tuple[int, int] | None = None
+
+    def __call__(self, task: FrameTask[BeamsInput]) -> dict:
+        from ..io.pointcloud import write_points
+
+        settings, plan, inp = self.settings, self.plan, task.inputs
+        cloud = Path(inp.cloud)
+        points = read_cloud_strict(cloud)
+        needs_rings = any(rings is not None for _, _, rings, _ in plan.items)
+        calib = None
+        if inp.calib_path is not None:
+            calib = _frame_calibration(inp.calib_path, inp.image, self.image_size)
+        stats: dict = {"points_in": int(points.shape[0])}
+        ring = None
+        n_lasers = _resolved(settings, cloud)[1]
+        if needs_rings:
+            ring, used, n_lasers = recover_cloud_rings(points, cloud, settings)
+            stats["ring_method"] = used
+            stats["ring_fallback"] = int(used != _resolved(settings, cloud)[0])
+            stats["rings_found"] = int(np.unique(ring).size)
+        selections = []
+        for label, n, rings, spec in plan.items:  # select everything first: errors write nothing
+            if rings is not None:
+                sel = select_beams(points, ring, rings=rings, n_lasers=n_lasers)
+            else:
+                if calib is None:
+                    raise ParameterError("pl++ needs --calib (its image-FOV pre-filter)")
+                sel = select_beams(
+                    points,
+                    line_spec=spec,
+                    calib=calib,
+                    pl_width=settings.pl_width,
+                    pl_height=settings.pl_height,
+                )
+            selections.append((label or f"n{n}", sel))
+        for (key, sel), out in zip(selections, task.outputs.values(), strict=True):
+            write_points(out, sel.points)
+            stats[f"kept_{key}"] = int(sel.index.size)
+            if calib is not None:
+                stats[f"density_{key}_pct"], _ = _density_pct(sel.points, calib)
         if calib is not None:
-            stats[f"density_{key}_pct"], _ = _density_pct(sel.points, calib)
-    if calib is not None:
-        stats["density_all_pct"], _ = _density_pct(points, calib)
-    return stats
+            stats["density_all_pct"], _ = _density_pct(points, calib)
+        return stats
 
 
 # -- tasks and running ---------------------------------------------------------------------------
 
 
 def beams_tasks(
-    frames,
-    out_dir: str | os.PathLike,
-    settings: BeamsSettings,
-    plan: _Plan,
-    *,
-    image_size: tuple[int, int] | None = None,
-) -> list[FrameTask]:
-    """One task per :class:`sparsetools.io.sources.SourceFrame`."""
+    frames: list[Frame], out_dir: str | os.PathLike, settings: BeamsSettings, plan: _Plan
+) -> list[FrameTask[BeamsInput]]:
+    """One task per frame: ``OUT/<sequence>/<frame><suffix>``, or ``OUT/n<N>/<sequence>/...``
+    per beam count when several are asked."""
     out = Path(out_dir)
     tasks = []
     for f in frames:
         suffix = _output_suffix(settings, f.cloud)
-        outputs = tuple(
-            (out / label if label else out) / f"{f.frame_id}{suffix}"
+        outputs = {
+            (label or "cloud"): f.key.path(out, suffix, prefix=label)
             for label, _, _, _ in plan.items
-        )
-        inputs = {
-            "settings": settings,
-            "plan": plan,
-            "cloud": str(f.cloud),
-            "calib_path": None if f.calib is None else str(f.calib),
-            "image": None if f.image is None else str(f.image),
-            "image_size": image_size,
-            "outputs": tuple(str(p) for p in outputs),
         }
-        tasks.append(FrameTask(f.frame_id, inputs, outputs))
+        inp = BeamsInput(
+            cloud=str(f.cloud),
+            calib_path=None if f.calib is None else str(f.calib),
+            image=None if f.image is None else str(f.image),
+        )
+        sources = (
+            f.cloud,
+            *([f.calib] if f.calib else []),
+            *([f.image] if f.image and f.calib else []),
+        )
+        tasks.append(FrameTask(f.key, inp, outputs, sources))
     return tasks
 
 
+def _plan_record(plan: _Plan) -> dict:
+    """The selection of every output set, compared on a rerun like a setting."""
+    out = {}
+    for (label, n, rings, spec), mode in zip(plan.items, plan.modes, strict=True):
+        key = f"selected {label or f'n{n}'}"
+        out[key] = (
+            f"{mode} rings {','.join(map(str, rings))}"
+            if rings is not None
+            else (f"pl++ line spec {','.join(map(str, spec))}")
+        )
+    return out
+
+
 def run_beams(
-    clouds: list[str | os.PathLike],
+    frames: list[Frame],
     out_dir: str | os.PathLike,
     settings: BeamsSettings,
     *,
-    calib: str | os.PathLike | None = None,
-    image: str | os.PathLike | None = None,
     image_size: tuple[int, int] | None = None,
-    executor=None,
-    overwrite: bool = False,
-    on_error: str = "stop",
-    progress: bool | None = None,
-) -> dict:
-    """Run ``beams`` over clouds (files or folders) and return the summary.
+    batch: Batch | None = None,
+    inputs: list[str | os.PathLike] = (),
+) -> RunSummary:
+    """Run ``beams`` over frames (from :func:`sparsetools.io.sources.cloud_frames`).
 
     Parameters
     ----------
-    clouds : list of path-like
-        Cloud files and/or folders.
+    frames : list of Frame
+        Clouds, with a calibration (file, KITTI raw folder or per frame) and image for the
+        density report and pl++.
     out_dir : path-like
     settings : BeamsSettings
-    calib : path-like, optional
-        Calibration (file, KITTI raw folder or per-frame folder matched by stem) for the
-        density report and pl++.
-    image, image_size : optional
-        Image (or folder) giving the map size, or the size itself.
+    image_size : (width, height), optional
+        Map size when the calibration holds none.
+    batch : Batch, optional
+    inputs : list of path-like
+        The folders the user gave (the output may not be inside them).
 
     Returns
     -------
-    dict
-        frames, processed, skipped_existing, failed, select, n, rings_<label> per output set,
-        ring_method, fallback_frames, points_in, kept_<label>, kept_<label>_pct and, with a
-        calibration, density_<label>_pct (mean over frames) and density_all_pct, format,
-        output, seconds, failures.
+    RunSummary
+        Totals: select_<label>, rings_<label> / line_spec_<label> per output set,
+        elevations_from, ring_method, fallback_frames, points_in, kept_<label>,
+        kept_<label>_pct and, with a calibration, density_<label>_pct (mean over frames) and
+        density_all_pct, format, output.
     """
-    from ..io.sources import frames_from_paths
-
-    frames = frames_from_paths(list(clouds), calib=calib, image=image)
-    if settings.mode == "pl++" and calib is None:
+    batch = batch or Batch()
+    if not frames:
+        raise ParameterError("no point clouds given")
+    has_calib = any(f.calib is not None for f in frames)
+    if settings.mode == "pl++" and not has_calib:
         raise ParameterError("--select pl++ needs --calib (its image-FOV pre-filter)")
-    if calib is not None:
+    if has_calib:
         f0 = frames[0]
         try:
             _frame_calibration(f0.calib, f0.image, image_size)
@@ -540,28 +553,35 @@ def run_beams(
         except SparsetoolsError:  # that frame's own problem: reported by its job
             pass
     plan = plan_selection([f.cloud for f in frames], settings)
-    inputs = [*clouds, *([calib] if calib else []), *([image] if image else [])]
     out = check_output_dir(out_dir, inputs)
-    tasks = beams_tasks(frames, out, settings, plan, image_size=image_size)
-    in_files = {Path(f.cloud).resolve() for f in frames}
-    for t in tasks:
-        for p in t.outputs:
-            if Path(p).resolve() in in_files:
-                raise OutputError(f"output {p} would replace an input file: choose another -o")
-    summary = run_frames(
-        beams_frame,
-        tasks,
-        executor=executor,
-        overwrite=overwrite,
-        on_error=on_error,
-        progress=progress,
-        desc="beams",
+    tasks = beams_tasks(frames, out, settings, plan)
+    from .provenance import option_names
+
+    selected = _plan_record(plan)
+    spec = RunSpec(
+        "beams",
+        out,
+        {**_settings_with(settings, image_size), **selected},
+        noun="beams",
+        options={**option_names(settings), **{k: k for k in selected}},
     )
-    base = summary.as_dict()
-    failures = base.pop("failures")
-    seconds = base.pop("seconds")
-    done = summary.done
-    result = dict(base)
+    summary = run_frames(BeamsJob(settings, plan, image_size), tasks, batch=batch, spec=spec)
+    return _with_totals(summary, settings, plan, out)
+
+
+def _settings_with(settings: BeamsSettings, image_size) -> dict:
+    from .provenance import settings_dict
+
+    d = settings_dict(settings)
+    d["image_size"] = list(image_size) if image_size else None
+    return d
+
+
+def _with_totals(
+    summary: RunSummary, settings: BeamsSettings, plan: _Plan, out: Path
+) -> RunSummary:
+    done = summary.ok
+    result: dict = {}
     if plan.elevation_source:
         result["elevations_from"] = plan.elevation_source
     points_in = summary.total("points_in")
@@ -588,17 +608,16 @@ def run_beams(
         result["density_all_pct"] = round(float(np.mean(dens_all)), 4)
     result["format"] = settings.fmt
     result["output"] = str(out)
-    result["seconds"] = round(seconds, 3)
-    result["failures"] = failures
-    return result
+    return summary.with_totals(result)
 
 
 def ring_report(clouds: list[str | os.PathLike], settings: BeamsSettings) -> list[dict]:
     """Ring table of each cloud (files or folders): method used, rings, per-ring statistics."""
-    from ..io.sources import discover_clouds
+    from ..io.sources import cloud_frames
 
     out = []
-    for path in discover_clouds(list(clouds)):
+    for f in cloud_frames(list(clouds)):
+        path = f.cloud
         points = read_cloud_strict(path)
         ring, used, n_lasers = recover_cloud_rings(points, path, settings)
         table = ring_table(points, ring, far_range=settings.far_range)

@@ -1,157 +1,101 @@
-"""Batch execution of a per-frame function over many frames.
+"""The frame runner: one per-frame job over many frames, with make-like resume.
 
-Every batch command builds a list of :class:`FrameTask` (one per frame: its id, its inputs,
-the outputs it will write) and hands it to :func:`run_frames`, which
+Every batch command builds a list of :class:`FrameTask` (one per frame: its key, a typed
+record of its inputs, the outputs it writes by role, the input files whose identity decides
+resume) and hands it to :func:`run_frames` with a picklable job (a callable taking a task and
+returning per-frame statistics; it writes its outputs itself, atomically). The runner
 
-- skips tasks whose outputs all exist (outputs are written atomically, so existing means
-  complete) unless ``overwrite`` — an interrupted run resumes where it stopped;
-- runs the rest on an :class:`Executor` (serial, a local process pool, or Dask — the
-  interface is :meth:`Executor.map`), in chunks so a lost worker loses little;
-- shows a progress bar on stderr (off when stderr is not a TTY or ``progress=False``);
-- applies the error policy: ``on_error="stop"`` raises at the first failed frame,
-  ``"skip"`` records it and goes on; the summary lists failures.
-
-The per-frame function must be a picklable module-level callable ``fn(task) -> dict`` that
-writes its outputs itself (atomically) and returns per-frame statistics.
+- refuses two tasks with one frame id or one output path, and outputs that would replace
+  inputs;
+- with a :class:`RunSpec`, applies the resume rule of :mod:`.provenance` (up to date frames
+  are skipped, frames whose inputs changed recomputed, other settings refused) and records
+  each frame as it completes;
+- runs the rest on the :class:`~.batch.Batch`'s executor (serial, local processes, Dask),
+  with a progress bar on stderr;
+- applies the error policy: ``stop`` raises :class:`FrameError` at the first failed frame,
+  ``skip`` records it and goes on (the summary lists failures).
 """
 
 from __future__ import annotations
 
 import logging
 import os
-import sys
 import time
 import traceback
-from collections.abc import Callable, Iterable, Iterator, Sequence
-from concurrent.futures import ProcessPoolExecutor
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Generic, TypeVar
 
 from ..errors import FrameError, OutputError, ParameterError, SparsetoolsError
 from ..io.atomic import remove_stale_temporaries
+from .batch import Batch, FrameResult, RunSummary
+from .provenance import OutputFolder
 
-__all__ = [
-    "Executor",
-    "FrameResult",
-    "FrameTask",
-    "LocalExecutor",
-    "RunSummary",
-    "SerialExecutor",
-    "check_output_dir",
-    "make_executor",
-    "run_frames",
-]
+__all__ = ["FrameTask", "RunSpec", "check_output_dir", "run_frames"]
 
 log = logging.getLogger(__name__)
 
+I = TypeVar("I")
+
 
 @dataclass(frozen=True)
-class FrameTask:
+class FrameTask(Generic[I]):
     """One unit of batch work.
 
     Attributes
     ----------
-    frame_id : str
-        Stable identifier (usually the file stem); used for messages and per-frame seeds.
-    inputs : dict
-        Whatever the per-frame function needs (paths, parameters); must be picklable.
-    outputs : tuple of Path
-        Files the function writes. When all exist the task is skipped (resume).
+    key : FrameKey or str
+        The frame (``str(key)`` is the frame id: messages, per-frame seeds, records).
+    inputs : a frozen dataclass of the job
+        What the job needs for this frame (paths, per-frame values); picklable.
+    outputs : mapping of role -> Path
+        Files the job writes (``{"depth": ..., "calib": ...}``).
+    sources : tuple of Path
+        Input files whose identity (path, size, mtime, hash) decides whether the frame is up
+        to date.
     """
 
-    frame_id: str
-    inputs: dict = field(default_factory=dict)
-    outputs: tuple[Path, ...] = ()
-
-
-@dataclass
-class FrameResult:
-    frame_id: str
-    ok: bool
-    stats: dict = field(default_factory=dict)
-    error: str = ""
-    skipped: bool = False
-
-
-@dataclass
-class RunSummary:
-    """What a batch did: per-frame results, in task order."""
-
-    results: list[FrameResult] = field(default_factory=list)
-    seconds: float = 0.0
+    key: Any
+    inputs: I = None
+    outputs: Mapping[str, Path] = field(default_factory=dict)
+    sources: tuple[Path, ...] = ()
 
     @property
-    def done(self) -> list[FrameResult]:
-        return [r for r in self.results if r.ok and not r.skipped]
+    def frame_id(self) -> str:
+        return str(self.key)
 
     @property
-    def resumed(self) -> list[FrameResult]:
-        return [r for r in self.results if r.skipped]
-
-    @property
-    def failed(self) -> list[FrameResult]:
-        return [r for r in self.results if not r.ok]
-
-    def total(self, key: str) -> float:
-        """Sum of a numeric per-frame statistic over the frames done in this run."""
-        return sum(r.stats.get(key, 0) for r in self.done)
-
-    def as_dict(self) -> dict:
-        return {
-            "frames": len(self.results),
-            "processed": len(self.done),
-            "skipped_existing": len(self.resumed),
-            "failed": len(self.failed),
-            "failures": {r.frame_id: r.error for r in self.failed},
-            "seconds": round(self.seconds, 3),
-        }
+    def output_paths(self) -> tuple[Path, ...]:
+        return tuple(Path(p) for p in self.outputs.values())
 
 
-class Executor(Protocol):
-    """Maps a function over items; results may arrive in any order.
+@dataclass(frozen=True)
+class RunSpec:
+    """What makes a folder's results: recorded, and compared on the next run.
 
-    ``map(fn, items)`` yields ``fn(item)`` for each item. A Dask executor implements the
-    same method on a cluster.
+    Attributes
+    ----------
+    command : str
+    out_dir : Path
+    settings : frozen dataclass (or mapping)
+        Everything that changes the results.
+    noun : str
+        What the folder holds, for messages (``depth maps``).
+    options : mapping, optional
+        Setting name -> how messages name it, when ``settings`` is a mapping (a dataclass
+        names its fields through their ``option`` metadata).
+    shared_outputs : tuple of Path
+        Files the run writes besides the frames' outputs (a merged table, a manifest): an
+        existing one in a folder without a record is refused like a frame's output.
     """
 
-    def map(self, fn: Callable[[Any], Any], items: Sequence[Any]) -> Iterator[Any]: ...
-
-
-class SerialExecutor:
-    """Runs everything in this process (``--workers 1``): simplest, best for debugging."""
-
-    def map(self, fn, items):
-        for item in items:
-            yield fn(item)
-
-
-class LocalExecutor:
-    """A local process pool of ``workers`` processes."""
-
-    def __init__(self, workers: int):
-        self.workers = workers
-
-    def map(self, fn, items):
-        # chunksize keeps the inter-process overhead small for cheap frames.
-        chunksize = max(1, min(16, len(items) // (4 * self.workers) or 1))
-        with ProcessPoolExecutor(max_workers=self.workers) as pool:
-            yield from pool.map(fn, items, chunksize=chunksize)
-
-
-def make_executor(
-    kind: str = "local", *, workers: int = 1, scheduler: str | None = None
-) -> Executor:
-    """Executor by name: ``local`` (serial for 1 worker, else a process pool) or ``dask``."""
-    if workers < 1:
-        raise ParameterError(f"--workers must be >= 1, got {workers}")
-    if kind == "local":
-        return SerialExecutor() if workers == 1 else LocalExecutor(workers)
-    if kind == "dask":
-        from .dask import DaskExecutor  # optional dependency, imported only when asked
-
-        return DaskExecutor(workers=workers, scheduler=scheduler)
-    raise ParameterError(f"unknown executor '{kind}' (choose local or dask)")
+    command: str
+    out_dir: Path
+    settings: Any = None
+    noun: str = "results"
+    options: Mapping[str, str] | None = None
+    shared_outputs: tuple[Path, ...] = ()
 
 
 class _Guarded:
@@ -166,87 +110,172 @@ class _Guarded:
             stats = self.fn(task) or {}
             return FrameResult(task.frame_id, True, stats)
         except SparsetoolsError as exc:
-            return FrameResult(task.frame_id, False, error=str(exc))
+            detail = traceback.format_exc() if self.debug else ""
+            return FrameResult(
+                task.frame_id, False, error=" ".join(str(exc).split()), detail=detail
+            )
+        except MemoryError:
+            return FrameResult(task.frame_id, False, error="out of memory")
         except Exception as exc:  # an unexpected bug: keep the traceback for --debug
-            detail = traceback.format_exc() if self.debug else f"{type(exc).__name__}: {exc}"
-            return FrameResult(task.frame_id, False, error=f"internal error: {detail}")
+            detail = traceback.format_exc() if self.debug else ""
+            msg = " ".join(f"{type(exc).__name__}: {exc}".split())
+            return FrameResult(task.frame_id, False, error=f"internal error: {msg}", detail=detail)
 
 
-def _complete(task: FrameTask) -> bool:
-    return bool(task.outputs) and all(Path(p).is_file() for p in task.outputs)
+def _check_tasks(tasks: list[FrameTask]) -> None:
+    ids: dict[str, FrameTask] = {}
+    for t in tasks:
+        if t.frame_id in ids:
+            raise ParameterError(f"two inputs map to the same frame id: {t.frame_id}")
+        ids[t.frame_id] = t
+    owner: dict[str, FrameTask] = {}
+    sources = {}
+    for t in tasks:
+        for s in t.sources:
+            sources[os.path.abspath(s)] = t
+    for t in tasks:
+        for p in t.output_paths:
+            key = os.path.abspath(p)
+            if key in owner and owner[key] is not t:
+                other = owner[key]
+                raise ParameterError(
+                    f"frames {other.frame_id} ({_first_source(other)}) and {t.frame_id} "
+                    f"({_first_source(t)}) would both write {p}"
+                )
+            owner[key] = t
+            if key in sources:
+                raise OutputError(f"output {p} would replace an input file: choose another -o")
+
+
+def _first_source(task: FrameTask) -> str:
+    return str(task.sources[0]) if task.sources else task.frame_id
 
 
 def run_frames(
     fn: Callable[[FrameTask], dict],
     tasks: Iterable[FrameTask],
     *,
-    executor: Executor | None = None,
-    overwrite: bool = False,
-    on_error: str = "stop",
-    progress: bool | None = None,
-    desc: str = "frames",
-    debug: bool = False,
+    batch: Batch | None = None,
+    spec: RunSpec | None = None,
+    complete: Callable[[FrameTask], bool] | None = None,
+    desc: str | None = None,
+    on_done: Callable[[FrameTask, FrameResult], None] | None = None,
+    before: Callable[[], None] | None = None,
 ) -> RunSummary:
     """Run ``fn`` over ``tasks`` with resume, progress and an error policy.
 
     Parameters
     ----------
     fn : callable(FrameTask) -> dict
-        Module-level (picklable) per-frame function; writes its outputs atomically.
+        Module-level or picklable job; writes its outputs atomically, returns statistics.
     tasks : iterable of FrameTask
-    executor : Executor, optional
-        Default: serial.
-    overwrite : bool
-        Recompute frames whose outputs exist.
-    on_error : {"stop", "skip"}
-        Stop at the first failed frame (raising :class:`FrameError`), or record it and go on.
-    progress : bool, optional
-        Progress bar on stderr; default: only when stderr is a TTY.
+    batch : Batch, optional
+        Executor, overwrite, error policy, progress, debug. Default: ``Batch()``.
+    spec : RunSpec, optional
+        Command, output folder and settings: enables the provenance-checked resume of
+        :mod:`.provenance`. Without it, a task whose outputs all exist is skipped (unless
+        ``batch.overwrite``).
+    complete : callable(FrameTask) -> bool, optional
+        Whether a task's outputs are complete (default: every output file exists).
+    desc : str, optional
+        Progress bar label (default: the command).
+    on_done : callable(FrameTask, FrameResult), optional
+        Called in this process for every finished task (after its record is written).
+    before : callable(), optional
+        Called once the folder is checked and before any frame runs (write shared files
+        the jobs read, such as a backscatter estimate), also when every frame is up to date.
 
     Returns
     -------
     RunSummary
         With ``on_error="skip"`` the caller decides the exit status from ``summary.failed``.
     """
-    if on_error not in ("stop", "skip"):
-        raise ParameterError(f"on_error must be 'stop' or 'skip', got {on_error!r}")
+    batch = batch or Batch()
     tasks = list(tasks)
-    ids = [t.frame_id for t in tasks]
-    if len(set(ids)) != len(ids):
-        dup = sorted({i for i in ids if ids.count(i) > 1})
-        raise ParameterError(f"two inputs map to the same frame id: {', '.join(dup[:5])}")
+    _check_tasks(tasks)
     t0 = time.perf_counter()
-    for folder in {Path(p).parent for t in tasks for p in t.outputs}:
+    for folder in {p.parent for t in tasks for p in t.output_paths}:
         remove_stale_temporaries(folder, recursive=False)
+    by_id = {t.frame_id: t for t in tasks}
     results: dict[str, FrameResult] = {}
-    todo = []
-    for t in tasks:
-        if not overwrite and _complete(t):
-            results[t.frame_id] = FrameResult(t.frame_id, True, skipped=True)
-        else:
-            todo.append(t)
-    if results:
-        log.info("%d of %d frame(s) already done, skipping them", len(results), len(tasks))
-    executor = executor or SerialExecutor()
-    show = sys.stderr.isatty() if progress is None else progress
+    summary = RunSummary(
+        command=spec.command if spec else "", output=spec.out_dir if spec else None
+    )
+    if spec is None:
+        done = complete or (lambda t: bool(t.outputs) and all(p.is_file() for p in t.output_paths))
+        todo = [t for t in tasks if batch.overwrite or not done(t)]
+        skipped = [t for t in tasks if t not in todo]
+        recorded: dict[str, dict] = {}
+        if before is not None:
+            before()
+        _execute(fn, todo, batch, results, None, set(), desc or "frames", on_done, by_id)
+    else:
+        with OutputFolder(
+            spec.out_dir,
+            spec.command,
+            spec.settings,
+            noun=spec.noun,
+            overwrite=batch.overwrite,
+            options=spec.options,
+        ) as folder:
+            plan = folder.plan(tasks, complete, shared=spec.shared_outputs)
+            skipped = plan.up_to_date
+            recorded = plan.stats
+            if skipped:
+                log.info("%d of %d frame(s) up to date, skipping them", len(skipped), len(tasks))
+            if plan.recomputed:
+                log.info("%d frame(s) with changed inputs are recomputed", len(plan.recomputed))
+            if before is not None:
+                before()
+            try:
+                _execute(
+                    fn, plan.todo, batch, results, folder, plan.recomputed,
+                    desc or spec.command, on_done, by_id,
+                )  # fmt: skip
+            finally:
+                summary.removed_stale = folder.removed_stale
+    for t in skipped:
+        results[t.frame_id] = FrameResult(
+            t.frame_id, True, stats=recorded.get(t.frame_id, {}), skipped=True
+        )
+    summary.results = [results[t.frame_id] for t in tasks if t.frame_id in results]
+    summary.seconds = time.perf_counter() - t0
+    return summary
+
+
+def _execute(fn, todo, batch, results, folder, recomputed, desc, on_done, by_id) -> None:
+    if not todo:
+        return
+    executor = batch.make_executor(len(todo))
     bar = None
-    if show and todo:
+    if batch.show_progress:
+        import sys
+
         from tqdm import tqdm
 
         bar = tqdm(total=len(todo), desc=desc, unit="frame", file=sys.stderr, leave=False)
     try:
-        for res in executor.map(_Guarded(fn, debug), todo):
+        for res in executor.map(_Guarded(fn, batch.debug), todo):
+            task = by_id[res.frame_id]
+            res.recomputed = res.frame_id in recomputed
             results[res.frame_id] = res
+            if folder is not None:
+                if res.ok:
+                    folder.record_done(task, res.stats)
+                else:
+                    folder.record_failed(task)
+            if on_done is not None:
+                on_done(task, res)
             if bar is not None:
                 bar.update(1)
             if not res.ok:
-                if on_error == "stop":
-                    raise FrameError(f"frame {res.frame_id}: {res.error}")
+                if batch.on_error == "stop":
+                    msg = f"frame {res.frame_id}: {res.error}"
+                    raise FrameError(msg + (f"\n{res.detail}" if res.detail else ""))
                 log.warning("frame %s failed: %s", res.frame_id, res.error)
     finally:
         if bar is not None:
             bar.close()
-    return RunSummary([results[i] for i in ids if i in results], time.perf_counter() - t0)
 
 
 def check_output_dir(out_dir: str | os.PathLike, inputs: Iterable[str | os.PathLike]) -> Path:
@@ -260,11 +289,15 @@ def check_output_dir(out_dir: str | os.PathLike, inputs: Iterable[str | os.PathL
     if out.exists() and not out.is_dir():
         raise OutputError(f"output {out_dir} is a file, expected a folder")
     for inp in inputs:
+        if inp is None:
+            continue
         ip = Path(inp).resolve()
         if ip.is_dir() and (out == ip or ip in out.parents):
             raise OutputError(f"output folder {out_dir} is inside the input folder {inp}")
     try:
         out.mkdir(parents=True, exist_ok=True)
+    except FileExistsError as exc:
+        raise OutputError(f"cannot create output folder {out_dir}: a file is in the way") from exc
     except OSError as exc:
         raise OutputError(f"cannot create output folder {out_dir}: {exc.strerror or exc}") from exc
     if not os.access(out, os.W_OK | os.X_OK):

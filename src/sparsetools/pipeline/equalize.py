@@ -2,65 +2,108 @@
 
 The table is built once (from ``--reference``, default the first image) and stored in
 ``OUT/mcie_lut.json`` with the reference and clip limit; every frame is mapped through it
-with ``cv2.LUT`` and written as ``OUT/<stem>.png``. A rerun resumes; a rerun whose table
-differs (other reference or clip) refuses to mix outputs unless ``overwrite``.
+with ``cv2.LUT`` and written as ``OUT/<sequence>/<frame>.png``. The reference frame is an
+input of every frame: when it changes, every frame is recomputed; another clip limit or
+reference is refused unless ``--overwrite``.
 """
 
 from __future__ import annotations
 
 import json
 import os
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import FormatError, OutputError, ParameterError
+from ..errors import ParameterError
 from ..io.atomic import atomic_path
-from .core import FrameTask, check_output_dir, run_frames
-from .lowlight import collect_images
+from ..io.sources import Frame
+from ..validate import check_positive
+from .batch import Batch, RunSummary
+from .core import FrameTask, RunSpec, check_output_dir, run_frames
+from .lowlight import image_frames
 
-__all__ = ["LUT_FILE", "equalize_frame", "equalize_tasks", "resolve_reference", "run_equalize"]
+__all__ = [
+    "LUT_FILE",
+    "EqualizeInput",
+    "EqualizeJob",
+    "EqualizeSettings",
+    "equalize_tasks",
+    "resolve_reference",
+    "run_equalize",
+]
 
 LUT_FILE = "mcie_lut.json"
 
 
-def resolve_reference(reference, files: list[Path]) -> Path:
-    """The reference frame: a path, or the stem/name of one of the inputs (default: the first)."""
+@dataclass(frozen=True)
+class EqualizeSettings:
+    """What the equalised frames depend on: the clip limit and the reference frame."""
+
+    clip: float = 0.004
+    reference: str = field(default="", metadata={"option": "--reference"})
+
+    def __post_init__(self) -> None:
+        check_positive(self.clip, "clip")
+
+
+@dataclass(frozen=True)
+class EqualizeInput:
+    image: str
+
+
+def resolve_reference(reference, frames: list[Frame]) -> Path:
+    """The reference frame: a path, or the frame id / name / file name of one input
+    (default: the first)."""
     if reference is None:
-        return files[0]
+        return frames[0].image
     ref = Path(reference)
     if ref.is_file():
         return ref
-    matches = [f for f in files if str(reference) in (f.stem, f.name)]
+    text = str(reference)
+    matches = [f for f in frames if text in (f.id, f.key.frame, f.image.stem, f.image.name)]
     if len(matches) == 1:
-        return matches[0]
+        return matches[0].image
     if len(matches) > 1:
         raise ParameterError(
-            f"reference '{reference}' matches several inputs: {matches[0]}, {matches[1]}"
+            f"'{reference}' matches several inputs: {matches[0].image}, {matches[1].image}",
+            param="reference",
         )
     raise ParameterError(
-        f"reference frame '{reference}' is neither a file nor the stem of an input"
+        f"frame '{reference}' is neither a file nor the name of an input", param="reference"
     )
 
 
+@dataclass(frozen=True)
+class EqualizeJob:
+    """The per-frame job (picklable): read (grey becomes RGB, 16-bit is refused), map, write."""
+
+    lut: np.ndarray
+
+    def __call__(self, task: FrameTask[EqualizeInput]) -> dict:
+        from ..io.image import read_image, write_image
+        from ..ops.enhance import apply_lut
+
+        image = read_image(task.inputs.image)
+        out = apply_lut(image, self.lut)
+        write_image(task.outputs["image"], out)
+        return {"mean_before": float(image.mean()), "mean_after": float(out.mean())}
+
+
 def equalize_tasks(
-    files: list[Path], out_dir: str | os.PathLike, lut: np.ndarray
-) -> list[FrameTask]:
+    frames: list[Frame], out_dir: str | os.PathLike, reference: Path
+) -> list[FrameTask[EqualizeInput]]:
     out = Path(out_dir)
     return [
-        FrameTask(f.stem, {"image": str(f), "lut": lut}, (out / f"{f.stem}.png",)) for f in files
+        FrameTask(
+            f.key,
+            EqualizeInput(str(f.image)),
+            {"image": f.key.path(out, ".png")},
+            (f.image, reference),
+        )
+        for f in frames
     ]
-
-
-def equalize_frame(task: FrameTask) -> dict:
-    """Per-frame job: read (grey becomes RGB, 16-bit is refused), map, write PNG."""
-    from ..io.image import read_image, write_image
-    from ..ops.enhance import apply_lut
-
-    image = read_image(task.inputs["image"])
-    out = apply_lut(image, task.inputs["lut"])
-    write_image(task.outputs[0], out)
-    return {"mean_before": float(image.mean()), "mean_after": float(out.mean())}
 
 
 def _lut_document(reference: Path, clip: float, lut: np.ndarray) -> dict:
@@ -78,44 +121,30 @@ def run_equalize(
     *,
     clip: float = 0.004,
     reference=None,
-    executor=None,
-    overwrite: bool = False,
-    on_error: str = "stop",
-    progress: bool | None = None,
-) -> dict:
+    batch: Batch | None = None,
+) -> RunSummary:
     """Equalise a sequence with one MCIE table built from the reference frame.
 
     Returns
     -------
-    dict
-        Run summary plus ``reference`` and ``lut_file``.
+    RunSummary
+        Totals: ``reference`` and ``lut_file``.
     """
     from ..io.image import read_image
     from ..ops.enhance import mcie_lut
 
-    files = collect_images(images)
-    ref = resolve_reference(reference, files)
-    check_output_dir(out_dir, [*map(str, images), str(ref)])
+    batch = batch or Batch()
+    frames = image_frames(images)
+    ref = resolve_reference(reference, frames)
+    settings = EqualizeSettings(clip=clip, reference=str(ref.resolve()))
+    out = check_output_dir(out_dir, [*map(str, images), str(ref)])
     lut = mcie_lut(read_image(ref), clip=clip)
-    doc = _lut_document(ref, clip, lut)
-    lut_path = Path(out_dir) / LUT_FILE
-    if lut_path.is_file() and not overwrite:
-        try:
-            old = json.loads(lut_path.read_text(encoding="utf-8"))
-        except (OSError, json.JSONDecodeError) as exc:
-            raise FormatError(f"{lut_path}: unreadable ({exc}); use --overwrite") from exc
-        if old.get("lut") != doc["lut"]:
-            raise OutputError(
-                f"{out_dir} holds frames equalised with another table (reference "
-                f"{old.get('reference')}, clip {old.get('clip')}); use --overwrite or another "
-                "folder"
-            )
-    tasks = equalize_tasks(files, out_dir, lut)
+    tasks = equalize_tasks(frames, out, ref)
+    spec = RunSpec(
+        "equalize", out, settings, noun="equalised frames", shared_outputs=(out / LUT_FILE,)
+    )
+    summary = run_frames(EqualizeJob(lut), tasks, batch=batch, spec=spec)
+    lut_path = out / LUT_FILE
     with atomic_path(lut_path) as tmp:
-        tmp.write_text(json.dumps(doc) + "\n", encoding="utf-8")
-    summary = run_frames(equalize_frame, tasks, executor=executor, overwrite=overwrite,
-                         on_error=on_error, progress=progress, desc="equalize")  # fmt: skip
-    out = summary.as_dict()
-    out["reference"] = str(ref)
-    out["lut_file"] = str(lut_path)
-    return out
+        tmp.write_text(json.dumps(_lut_document(ref, clip, lut)) + "\n", encoding="utf-8")
+    return summary.with_totals({"reference": str(ref), "lut_file": str(lut_path)})

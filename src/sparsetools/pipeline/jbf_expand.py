@@ -1,16 +1,17 @@
 """Batch job of ``sparsetools jbf-expand``: sparse radar depth to expanded depth + confidence.
 
-Inputs, per frame ``<stem>``:
+Inputs, per frame (key ``<sequence>/<frame>``, matched across inputs by key):
 
 - a radar depth PNG (KITTI uint16, e.g. written by ``sparsetools project``) or a nuScenes
   radar ``.pcd`` projected on the fly with the frame's calibration;
-- the camera image ``<stem>.png|.jpg`` (a file for a single frame, or a folder);
-- the focal lengths: ``--fx/--fy`` or a calibration (one file, or a folder of
-  ``<stem>.json|.txt``);
-- optionally the LiDAR depth PNG ``<stem>.png`` for the intrinsic-error table.
+- the camera image (a file for a single frame, or a folder matched by frame);
+- the focal lengths: ``--fx/--fy`` or a calibration (one file, or a folder of per-frame
+  ``.json|.txt``);
+- optionally the LiDAR depth map for the intrinsic-error table.
 
-Outputs: ``OUT/<stem>.png`` (expanded depth, KITTI uint16, depth * 256) and, unless disabled,
-``OUT/<stem>_conf.png`` (confidence * 65535, uint16) or ``OUT/<stem>_conf.npy`` (float32).
+Outputs: ``OUT/<sequence>/<frame>.png`` (expanded depth, KITTI uint16, depth * 256) and,
+unless disabled, ``OUT/<sequence>/<frame>_conf.png`` (confidence * 65535, uint16) or
+``_conf.npy`` (float32); a flat input has no ``<sequence>/`` level.
 
 With ``resize`` the image is resized with OpenCV (area interpolation when shrinking) and the
 sparse maps (radar, LiDAR) are resized by moving each valid pixel to its scaled position
@@ -23,24 +24,28 @@ from __future__ import annotations
 import logging
 import math
 import os
-import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import FormatError, ParameterError
 from ..io.atomic import atomic_path
-from .core import FrameTask, RunSummary, check_output_dir, run_frames
+from ..io.sources import Frame, FrameKey
+from ..validate import check_positive
+from .batch import Batch, RunSummary
+from .core import FrameTask, RunSpec, check_output_dir, run_frames
 
 __all__ = [
     "CONF_FORMATS",
     "METHODS",
+    "JbfInput",
+    "JbfJob",
     "JbfSettings",
-    "build_tasks",
-    "expand_frame",
     "format_intrinsic_table",
     "intrinsic_summary",
+    "jbf_tasks",
+    "radar_frames",
     "resize_sparse_depth",
     "run_jbf_expand",
 ]
@@ -50,9 +55,6 @@ log = logging.getLogger(__name__)
 METHODS = ("jbf", "height-extend")
 CONF_FORMATS = ("png", "npy")
 RADAR_SUFFIXES = (".png", ".pcd")
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
-CALIB_SUFFIXES = (".json", ".txt")
-_SWEEP = re.compile(r"^(?P<frame>.+)_sweep\d+$")
 
 
 @dataclass(frozen=True)
@@ -79,7 +81,7 @@ class JbfSettings:
     sigma_s: float = 25.0
     sigma_r: float = 10.0
     threshold: float = 0.05
-    window_m: tuple[float, float] = (2.35, 2.35)
+    window_m: tuple[float, float] = field(default=(2.35, 2.35), metadata={"option": "--window"})
     kernel: str = "jbf"
     range_metric: str = "gray"
     conflict: str = "nearest"
@@ -128,155 +130,73 @@ class JbfSettings:
 # -- inputs -------------------------------------------------------------------------------------
 
 
-def _find_by_stem(folder: Path, stem: str, suffixes: tuple[str, ...]) -> Path | None:
-    for suffix in suffixes:
-        for candidate in (folder / f"{stem}{suffix}", folder / f"{stem}{suffix.upper()}"):
-            if candidate.is_file():
-                return candidate
-    return None
-
-
-def discover_radar(paths: list[str | os.PathLike]) -> list[Path]:
-    """Radar inputs: files as given, folders expanded to their ``*.png`` and ``*.pcd``.
+def radar_frames(paths: list[str | os.PathLike]) -> list[Frame]:
+    """Radar inputs as frames: files as given, folders expanded to their ``*.png`` / ``*.pcd``.
 
     In a folder, ``<frame>_sweep<k>.pcd`` (or ``.png``) is left out when ``<frame>.pcd`` (or
     ``.png``) is there too: those are the single sweeps of a merged multi-sweep frame (the
-    layout ``synth-scene`` writes, and ``project`` keeps).
+    layout ``synth-scene`` writes). A folder written by ``project`` is read through its record.
     """
-    out: list[Path] = []
-    for p in map(Path, paths):
-        if p.is_dir():
-            found = sorted(
-                c
-                for c in p.iterdir()
-                if c.is_file() and not c.name.startswith(".") and c.suffix.lower() in RADAR_SUFFIXES
-            )
-            names = {c.name for c in found}
-            kept = []
-            for c in found:
-                m = _SWEEP.match(c.stem)
-                if m and f"{m['frame']}{c.suffix}" in names:
-                    continue
-                kept.append(c)
-            if not kept:
-                raise FormatError(f"{p}: no radar depth PNG or .pcd file in this folder")
-            out.extend(kept)
-        elif p.is_file():
-            if p.suffix.lower() not in RADAR_SUFFIXES:
-                raise FormatError(
-                    f"{p}: not a radar input (expected a depth .png or a nuScenes radar .pcd)"
-                )
-            out.append(p)
-        else:
-            raise FormatError(f"{p}: no such file or folder")
-    if not out:
+    from ..io.sources import index_input
+    from ..io.sources.tree import index_tree
+
+    if not paths:
         raise ParameterError("no radar inputs given")
-    return out
-
-
-def _per_frame(path: Path | None, stem: str, suffixes, what: str, n_frames: int) -> Path | None:
-    """The file of one frame: ``path`` itself (one frame only) or ``path/<stem><suffix>``."""
-    if path is None:
-        return None
-    if what == "calibration" and (path / "calib_cam_to_cam.txt").is_file():
-        return path  # a KITTI raw date folder: one calibration for every frame
-    if path.is_dir():
-        found = _find_by_stem(path, stem, suffixes)
-        if found is None:
+    frames: dict[FrameKey, Frame] = {}
+    for p in map(Path, paths):
+        if p.is_file() and p.suffix.lower() not in RADAR_SUFFIXES:
             raise FormatError(
-                f"{path}: no {what} for frame {stem} (looked for "
-                f"{', '.join(stem + s for s in suffixes)})"
+                f"{p}: not a radar input (expected a depth .png or a nuScenes radar .pcd)"
             )
-        return found
-    if not path.exists():
-        raise FormatError(f"{path}: no such {what} file or folder")
-    if n_frames > 1 and what != "calibration":
-        raise ParameterError(
-            f"{path} is one {what} file but {n_frames} radar frames were given: pass a folder "
-            f"of {what}s matched by stem"
-        )
-    return path
+        if p.is_dir() and not any(p.iterdir()):
+            raise FormatError(f"{p}: no radar depth PNG or .pcd file in this folder")
+        try:
+            index = index_tree(p, RADAR_SUFFIXES, option="RADAR", role="depth")
+        except FormatError:
+            index = index_input(p, "depth", option="RADAR")  # a KITTI depth-completion tree
+        for key, f in index.files.items():
+            if key in frames:
+                raise FormatError(f"{frames[key].depth} and {f} are the same frame '{key}'")
+            frames[key] = Frame(key=key, depth=f)
+    return [frames[k] for k in sorted(frames)]
 
 
-def build_tasks(
-    radar: list[str | os.PathLike],
-    *,
-    image: str | os.PathLike,
+@dataclass(frozen=True)
+class JbfInput:
+    """One frame's files: radar (depth PNG or ``.pcd``), image, calibration, LiDAR depth."""
+
+    radar: str
+    image: str
+    calib: str | None = None
+    lidar: str | None = None
+
+
+def jbf_tasks(
+    frames: list[Frame],
     out_dir: str | os.PathLike,
     settings: JbfSettings,
-    calib: str | os.PathLike | None = None,
-    fx: float | None = None,
-    fy: float | None = None,
-    lidar: str | os.PathLike | None = None,
-) -> list[FrameTask]:
-    """One :class:`FrameTask` per radar input; every file is found before anything runs.
-
-    Parameters
-    ----------
-    radar : list of path-like
-        Radar depth PNGs and/or radar ``.pcd`` files, or folders of them.
-    image : path-like
-        Camera image (one frame) or folder of images matched by stem.
-    out_dir : path-like
-    settings : JbfSettings
-    calib : path-like, optional
-        Calibration file (shared) or folder of ``<stem>.json|.txt``: gives fx, fy and, for
-        ``.pcd`` inputs, the radar-to-camera projection.
-    fx, fy : float, optional, pixels
-        Focal lengths of the (unresized) image, instead of a calibration.
-    lidar : path-like, optional
-        LiDAR depth PNG (one frame) or folder of ``<stem>.png`` for the intrinsic error.
-    """
-    settings.check()
-    files = discover_radar(radar)
-    calib_path = Path(calib) if calib is not None else None
-    if calib_path is None:
-        if fx is None or fy is None:
-            raise ParameterError("give the focal lengths: --fx and --fy, or --calib")
-        for name, v in (("fx", fx), ("fy", fy)):
-            if not (math.isfinite(v) and v > 0):
-                raise ParameterError(f"{name} must be finite and > 0, got {v}")
-    elif fx is not None or fy is not None:
-        raise ParameterError("give either --calib or --fx/--fy, not both")
-    if any(f.suffix.lower() == ".pcd" for f in files) and calib_path is None:
-        raise ParameterError("radar .pcd inputs need --calib (the radar-to-camera calibration)")
-    image_path = Path(image)
-    lidar_path = Path(lidar) if lidar is not None else None
+    *,
+    lidar: dict[FrameKey, Path] | None = None,
+) -> list[FrameTask[JbfInput]]:
+    """One task per frame (``depth`` = the radar input, ``image``, optional ``calib``; LiDAR
+    depth maps by key); outputs ``OUT/<sequence>/<frame>.png`` and
+    ``OUT/<sequence>/<frame>_conf.png``."""
     out = Path(out_dir)
-    inputs = {Path(p) for p in radar} | {image_path}
-    if lidar_path is not None:
-        inputs.add(lidar_path)
-    n = len(files)
     tasks = []
-    for f in files:
-        stem = f.stem
-        outputs = [out / f"{stem}.png"]
+    for f in frames:
+        outputs = {"depth": f.key.path(out, ".png")}
         if settings.confidence:
-            outputs.append(out / f"{stem}_conf.{settings.conf_format}")
-        frame_inputs = {
-            "radar": str(f),
-            "image": str(_per_frame(image_path, stem, IMAGE_SUFFIXES, "image", n)),
-            "calib": _str(_per_frame(calib_path, stem, CALIB_SUFFIXES, "calibration", n)),
-            "lidar": _str(_per_frame(lidar_path, stem, (".png",), "LiDAR depth", n)),
-        }
-        sources = {Path(v).resolve() for v in frame_inputs.values() if v is not None}
-        for o in outputs:
-            if o.resolve() in sources:
-                raise ParameterError(f"output {o} would overwrite an input of frame {stem}")
-        tasks.append(
-            FrameTask(
-                frame_id=stem,
-                inputs={**frame_inputs, "fx": fx, "fy": fy, "settings": settings},
-                outputs=tuple(outputs),
-            )
+            outputs["confidence"] = f.key.path(out, f"_conf.{settings.conf_format}")
+        lid = (lidar or {}).get(f.key)
+        inp = JbfInput(
+            radar=str(f.depth),
+            image=str(f.image),
+            calib=None if f.calib is None else str(f.calib),
+            lidar=None if lid is None else str(lid),
         )
-    # Only now that every input was found: an error above leaves nothing behind.
-    check_output_dir(out, [p for p in inputs if p.is_dir()])
+        sources = tuple(p for p in (f.depth, f.image, f.calib, lid) if p is not None)
+        tasks.append(FrameTask(f.key, inp, outputs, sources))
     return tasks
-
-
-def _str(p: Path | None) -> str | None:
-    return None if p is None else str(p)
 
 
 # -- one frame ----------------------------------------------------------------------------------
@@ -349,87 +269,94 @@ def _write_confidence(path: Path, confidence: np.ndarray, fmt: str) -> None:
             tmp.write_bytes(buf.tobytes())
 
 
-def expand_frame(task: FrameTask) -> dict:
-    """Per-frame job: read, (resize,) expand, write; return statistics and intrinsic errors."""
-    from ..io.image import read_depth_png, read_image, write_depth_png
-    from ..ops.intrinsic import intrinsic_error
-    from ..ops.jbf import height_extend, jbf_expand
+@dataclass(frozen=True)
+class JbfJob:
+    """The per-frame job of ``jbf-expand`` (picklable): read, (resize,) expand, write; returns
+    seeds, points and, with LiDAR, the intrinsic errors."""
 
-    inp = task.inputs
-    s: JbfSettings = inp["settings"]
-    rgb = read_image(inp["image"])
-    size0 = (rgb.shape[1], rgb.shape[0])
-    scale = s.resize if s.resize is not None and s.resize != 1.0 else None
-    calib = _frame_calibration(inp["calib"], size0) if inp["calib"] else None
-    fx, fy = (calib.fx, calib.fy) if calib is not None else (float(inp["fx"]), float(inp["fy"]))
-    if scale is not None:
-        size = (max(1, round(size0[0] * scale)), max(1, round(size0[1] * scale)))
-        rgb = _resize_image(rgb, size, scale)
-        fx, fy = fx * scale, fy * scale
-    else:
-        size = size0
+    settings: JbfSettings
+    fx: float | None = None
+    fy: float | None = None
 
-    radar_path = Path(inp["radar"])
-    if radar_path.suffix.lower() == ".pcd":
-        from ..io.nuscenes import read_radar_pcd
-        from ..ops.projection import project_points
+    def __call__(self, task: FrameTask[JbfInput]) -> dict:
+        from ..io.image import read_depth_png, read_image, write_depth_png
+        from ..ops.intrinsic import intrinsic_error
+        from ..ops.jbf import height_extend, jbf_expand
 
-        points = read_radar_pcd(radar_path)
-        cam = calib.resized(scale).with_size(*size) if scale is not None else calib
-        radar = project_points(points, cam)
-    else:
-        radar = read_depth_png(radar_path)
-        if (radar.shape[1], radar.shape[0]) != size0:
-            raise ParameterError(
-                f"radar depth {radar_path} is {radar.shape[1]}x{radar.shape[0]} but the image "
-                f"is {size0[0]}x{size0[1]}: they must have the same size"
-            )
+        inp, s = task.inputs, self.settings
+        rgb = read_image(inp.image)
+        size0 = (rgb.shape[1], rgb.shape[0])
+        scale = s.resize if s.resize is not None and s.resize != 1.0 else None
+        calib = _frame_calibration(inp.calib, size0) if inp.calib else None
+        fx, fy = (calib.fx, calib.fy) if calib is not None else (float(self.fx), float(self.fy))
         if scale is not None:
-            radar = resize_sparse_depth(radar, scale, size)
+            size = (max(1, round(size0[0] * scale)), max(1, round(size0[1] * scale)))
+            rgb = _resize_image(rgb, size, scale)
+            fx, fy = fx * scale, fy * scale
+        else:
+            size = size0
 
-    if s.method == "jbf":
-        depth, confidence = jbf_expand(
-            radar,
-            rgb,
-            fx=fx,
-            fy=fy,
-            sigma_s=s.sigma_s,
-            sigma_r=s.sigma_r,
-            threshold=s.threshold,
-            window_m=s.window_m,
-            kernel=s.kernel,
-            range_metric=s.range_metric,
-            conflict=s.conflict,
-        )
-    else:
-        depth = height_extend(radar, fy=fy, below_m=s.below_m, above_m=s.above_m)
-        confidence = (depth > 0).astype(np.float32)
+        radar_path = Path(inp.radar)
+        if radar_path.suffix.lower() == ".pcd":
+            from ..io.nuscenes import read_radar_pcd
+            from ..ops.projection import project_points
 
-    stats = {
-        "seeds": int(np.count_nonzero(radar > 0)),
-        "points": int(np.count_nonzero(depth > 0)),
-    }
-    if inp["lidar"]:
-        lidar = read_depth_png(inp["lidar"])
-        if (lidar.shape[1], lidar.shape[0]) != size0:
-            raise ParameterError(
-                f"LiDAR depth {inp['lidar']} is {lidar.shape[1]}x{lidar.shape[0]} but the image "
-                f"is {size0[0]}x{size0[1]}"
-            )
-        if scale is not None:
-            lidar = resize_sparse_depth(lidar, scale, size)
-        rows = {"raw": intrinsic_error(radar, lidar, max_depth=s.max_depth)}
-        name = s.kernel if s.method == "jbf" else "height-extend"
-        rows[name] = intrinsic_error(depth, lidar, max_depth=s.max_depth)
+            points = read_radar_pcd(radar_path)
+            cam = calib.resized(scale).with_size(*size) if scale is not None else calib
+            radar = project_points(points, cam)
+        else:
+            radar = read_depth_png(radar_path)
+            if (radar.shape[1], radar.shape[0]) != size0:
+                raise ParameterError(
+                    f"radar depth {radar_path} is {radar.shape[1]}x{radar.shape[0]} but the "
+                    f"image is {size0[0]}x{size0[1]}: they must have the same size"
+                )
+            if scale is not None:
+                radar = resize_sparse_depth(radar, scale, size)
+
         if s.method == "jbf":
-            baseline = height_extend(radar, fy=fy, below_m=s.below_m, above_m=s.above_m)
-            rows["height-extend"] = intrinsic_error(baseline, lidar, max_depth=s.max_depth)
-        stats["intrinsic"] = rows
+            depth, confidence = jbf_expand(
+                radar,
+                rgb,
+                fx=fx,
+                fy=fy,
+                sigma_s=s.sigma_s,
+                sigma_r=s.sigma_r,
+                threshold=s.threshold,
+                window_m=s.window_m,
+                kernel=s.kernel,
+                range_metric=s.range_metric,
+                conflict=s.conflict,
+            )
+        else:
+            depth = height_extend(radar, fy=fy, below_m=s.below_m, above_m=s.above_m)
+            confidence = (depth > 0).astype(np.float32)
 
-    stats["clipped"] = write_depth_png(task.outputs[0], depth)
-    if s.confidence:
-        _write_confidence(task.outputs[1], confidence, s.conf_format)
-    return stats
+        stats = {
+            "seeds": int(np.count_nonzero(radar > 0)),
+            "points": int(np.count_nonzero(depth > 0)),
+        }
+        if inp.lidar:
+            lidar = read_depth_png(inp.lidar)
+            if (lidar.shape[1], lidar.shape[0]) != size0:
+                raise ParameterError(
+                    f"LiDAR depth {inp.lidar} is {lidar.shape[1]}x{lidar.shape[0]} but the "
+                    f"image is {size0[0]}x{size0[1]}"
+                )
+            if scale is not None:
+                lidar = resize_sparse_depth(lidar, scale, size)
+            rows = {"raw": intrinsic_error(radar, lidar, max_depth=s.max_depth)}
+            name = s.kernel if s.method == "jbf" else "height-extend"
+            rows[name] = intrinsic_error(depth, lidar, max_depth=s.max_depth)
+            if s.method == "jbf":
+                baseline = height_extend(radar, fy=fy, below_m=s.below_m, above_m=s.above_m)
+                rows["height-extend"] = intrinsic_error(baseline, lidar, max_depth=s.max_depth)
+            stats["intrinsic"] = rows
+
+        stats["clipped"] = write_depth_png(task.outputs["depth"], depth)
+        if s.confidence:
+            _write_confidence(task.outputs["confidence"], confidence, s.conf_format)
+        return stats
 
 
 # -- run and report -----------------------------------------------------------------------------
@@ -445,35 +372,113 @@ def run_jbf_expand(
     fx: float | None = None,
     fy: float | None = None,
     lidar: str | os.PathLike | None = None,
-    executor=None,
-    overwrite: bool = False,
-    on_error: str = "stop",
-    progress: bool | None = None,
+    batch: Batch | None = None,
 ) -> RunSummary:
-    """Expand every radar frame (see the module docstring); returns the run summary.
+    """Expand every radar frame (see the module docstring).
 
-    Frames whose outputs exist are skipped unless ``overwrite`` (so they have no statistics
-    and no intrinsic error in this run's summary).
+    Parameters
+    ----------
+    radar : list of path-like
+        Radar depth PNGs and/or radar ``.pcd`` files, or folders of them.
+    image : path-like
+        Camera image (one frame) or folder of images matched by frame.
+    out_dir : path-like
+    settings : JbfSettings
+    calib : path-like, optional
+        Calibration file (shared) or folder of per-frame ``.json|.txt``: gives fx, fy and,
+        for ``.pcd`` inputs, the radar-to-camera projection.
+    fx, fy : float, optional, pixels
+        Focal lengths of the (unresized) image, instead of a calibration.
+    lidar : path-like, optional
+        LiDAR depth PNG (one frame) or folder matched by frame, for the intrinsic error.
+    batch : Batch, optional
+
+    Returns
+    -------
+    RunSummary
+        Totals: mean_seeds, mean_points, expansion_factor and, with LiDAR, intrinsic_error
+        (per frame and mean; frames up to date included, from the folder's record).
     """
-    tasks = build_tasks(
-        radar,
-        image=image,
-        out_dir=out_dir,
-        settings=settings,
-        calib=calib,
-        fx=fx,
-        fy=fy,
-        lidar=lidar,
+    from ..io.sources import attach, index_input, match_keys
+
+    batch = batch or Batch()
+    settings.check()
+    if calib is None:
+        if fx is None or fy is None:
+            raise ParameterError("give the focal lengths: --fx and --fy, or --calib")
+        check_positive(fx, "fx")
+        check_positive(fy, "fy")
+    elif fx is not None or fy is not None:
+        raise ParameterError("give either --calib or --fx/--fy, not both")
+    frames = radar_frames(list(radar))
+    if any(f.depth.suffix.lower() == ".pcd" for f in frames) and calib is None:
+        raise ParameterError("radar .pcd inputs need --calib (the radar-to-camera calibration)")
+    frames, missing = attach(
+        frames, image, "image", role="image", option="--image", shared_ok=False
     )
-    return run_frames(
-        expand_frame,
-        tasks,
-        executor=executor,
-        overwrite=overwrite,
-        on_error=on_error,
-        progress=progress,
-        desc="jbf-expand",
+    if missing:
+        raise FormatError(_missing(frames, "image", image, missing))
+    frames, missing = attach(frames, calib, "calib", role="calib", option="--calib")
+    if missing:
+        raise FormatError(_missing(frames, "calib", calib, missing))
+    lidar_files = None
+    if lidar is not None:
+        lp = Path(lidar)
+        if lp.is_file():
+            if len(frames) > 1:
+                raise ParameterError(
+                    f"{lp} is one LiDAR depth file but {len(frames)} radar frames were given: "
+                    "pass a folder of LiDAR depth maps matched by frame",
+                    param="lidar",
+                )
+            lidar_files = {frames[0].key: lp}
+        else:
+            index = index_input(lp, "depth", option="--lidar")
+            lidar_files = match_keys([f.key for f in frames], index.files)
+            if len(lidar_files) < len(frames):
+                absent = next(f.key for f in frames if f.key not in lidar_files)
+                raise FormatError(
+                    f"--lidar: {lp}: no LiDAR depth map for frame {absent} "
+                    f"({len(frames) - len(lidar_files)} of {len(frames)} missing)"
+                )
+    tasks = jbf_tasks(frames, out_dir, settings, lidar=lidar_files)
+    inputs = [Path(p) for p in (*radar, image, calib, lidar) if p is not None]
+    out = check_output_dir(out_dir, [p for p in inputs if p.is_dir()])
+    from .provenance import option_names, settings_dict
+
+    spec = RunSpec(
+        "jbf-expand",
+        out,
+        {**settings_dict(settings), "fx": fx, "fy": fy},
+        noun="expanded radar maps",
+        options=option_names(settings),
     )
+    summary = run_frames(JbfJob(settings, fx, fy), tasks, batch=batch, spec=spec)
+    return _with_totals(summary, lidar is not None)
+
+
+def _missing(frames: list[Frame], field: str, path, n: int) -> str:
+    f = next(f for f in frames if not Path(getattr(f, field)).exists())
+    return (
+        f"--{field}: {path}: no {'image' if field == 'image' else 'calibration'} for frame "
+        f"{f.key} (expected {getattr(f, field)}; {n} of {len(frames)} frames lack one)"
+    )
+
+
+def _with_totals(summary: RunSummary, with_lidar: bool) -> RunSummary:
+    ok = summary.ok
+    totals: dict = {}
+    if ok:
+        seeds = summary.total("seeds") / len(ok)
+        points = summary.total("points") / len(ok)
+        totals.update(
+            mean_seeds=seeds,
+            mean_points=points,
+            expansion_factor=points / seeds if seeds else 0.0,
+        )
+    if with_lidar:
+        totals["intrinsic_error"] = intrinsic_summary(summary)
+    return summary.with_totals(totals)
 
 
 def intrinsic_summary(summary: RunSummary) -> dict:
@@ -481,7 +486,7 @@ def intrinsic_summary(summary: RunSummary) -> dict:
     {row: {...}}}`` (rows: raw, the expansion, height-extend)."""
     from ..ops.intrinsic import mean_intrinsic_error
 
-    frames = {r.frame_id: r.stats["intrinsic"] for r in summary.done if "intrinsic" in r.stats}
+    frames = {r.frame_id: r.stats["intrinsic"] for r in summary.ok if "intrinsic" in r.stats}
     names: list[str] = []
     for rows in frames.values():
         names.extend(n for n in rows if n not in names)

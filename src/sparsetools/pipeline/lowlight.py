@@ -1,8 +1,9 @@
 """Batch job of ``sparsetools lowlight-synth``: night images + a Parquet manifest.
 
 Per source image and variant ``k`` the job draws a :class:`~sparsetools.ops.lowlight.LowLightRecord`
-from ``frame_rng(seed, "<stem>:<k>")`` (so the output does not depend on ``--workers``), writes
-the night image and a JSON sidecar ``records/<name>.json`` holding the record. After the
+from ``frame_rng(seed, "<frame id>:<k>")`` (so the output does not depend on ``--workers``),
+writes the night image ``OUT/<sequence>/<frame>[_v<k>].png`` and a JSON sidecar
+``OUT/records/<sequence>/<frame>[_v<k>].json`` holding the record. After the
 batch, ``manifest.parquet`` is rebuilt from all sidecars (frames done earlier included, so an
 interrupted run resumes and still gets a complete manifest) and written atomically.
 """
@@ -15,15 +16,18 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..errors import FormatError, OutputError, ParameterError
+from ..errors import FormatError, ParameterError
 from ..io.atomic import atomic_path
-from ..io.sources import CALIB_SUFFIXES, IMAGE_SUFFIXES, find_by_stem
-from .core import FrameTask, check_output_dir, run_frames
+from ..io.sources import IMAGE_SUFFIXES, Frame, FrameKey
+from .batch import Batch, RunSummary
+from .core import FrameTask, RunSpec, check_output_dir, run_frames
 
 __all__ = [
+    "MAX_VARIANTS",
+    "LowLightInput",
     "LowLightJob",
-    "collect_images",
-    "lowlight_frame",
+    "LowLightSettings",
+    "image_frames",
     "lowlight_tasks",
     "run_lowlight",
     "write_manifest",
@@ -33,159 +37,138 @@ log = logging.getLogger(__name__)
 
 MANIFEST = "manifest.parquet"
 RECORDS = "records"
+#: Night versions per image at most (each is a full image on disk).
+MAX_VARIANTS = 1000
 
 
-def collect_images(paths) -> list[Path]:
-    """Expand image files and folders (not recursive) into a sorted-per-folder list.
+def image_frames(paths, *, option: str = "IMAGE") -> list[Frame]:
+    """Images given as files and/or folders (a folder tree: ``DIR/<sequence>/<frame>.png``;
+    a folder written by sparsetools: its recorded images), as frames sorted by key.
 
     Raises
     ------
     FormatError
-        A path does not exist, a folder holds no image, or a file is not a PNG/JPEG.
+        A path does not exist, a folder holds no image, a file is not a PNG/JPEG, or two
+        files are the same frame.
     """
-    out: list[Path] = []
-    for p in map(Path, paths):
-        if p.is_dir():
-            found = sorted(
-                f for f in p.iterdir()
-                if f.is_file() and not f.name.startswith(".") and f.suffix.lower() in IMAGE_SUFFIXES
-            )  # fmt: skip
-            if not found:
-                raise FormatError(f"{p}: no images in this folder (looked for *.png, *.jpg)")
-            out.extend(found)
-        elif p.is_file():
-            if p.suffix.lower() not in IMAGE_SUFFIXES:
-                raise FormatError(f"{p}: not a PNG or JPEG image")
-            out.append(p)
-        else:
-            raise FormatError(f"{p}: no such file or folder")
-    if not out:
+    from ..io.sources import index_input
+
+    frames: dict[FrameKey, Frame] = {}
+    paths = list(paths)
+    if not paths:
         raise ParameterError("no images given")
-    return out
+    for p in map(Path, paths):
+        if p.is_file() and p.suffix.lower() not in IMAGE_SUFFIXES:
+            raise FormatError(f"{p}: not a PNG or JPEG image")
+        index = index_input(p, "image", option=option)
+        for key, f in index.files.items():
+            if key in frames:
+                raise FormatError(f"{frames[key].image} and {f} are the same frame '{key}'")
+            frames[key] = Frame(key=key, image=f)
+    return [frames[k] for k in sorted(frames)]
 
 
 @dataclass(frozen=True)
-class LowLightJob:
-    """Settings shared by every frame (picklable)."""
+class LowLightSettings:
+    """What a run's night images depend on (the same for every frame)."""
 
     seed: int
     variants: int
     params: dict
 
-    def config(self) -> dict:
-        """JSON-normalised settings (tuples as lists), comparable with a sidecar's copy."""
-        return json.loads(
-            json.dumps({"seed": self.seed, "variants": self.variants, "params": self.params})
-        )
+
+@dataclass(frozen=True)
+class LowLightInput:
+    """One frame's files: the day image, its depth map and calibration (both optional)."""
+
+    image: str
+    depth: str | None = None
+    calib: str | None = None
 
 
-def _output_name(stem: str, variant: int, variants: int) -> str:
-    return f"{stem}.png" if variants == 1 else f"{stem}_v{variant}.png"
+def _output_name(frame: str, variant: int, variants: int) -> str:
+    return f"{frame}.png" if variants == 1 else f"{frame}_v{variant}.png"
 
 
 def lowlight_tasks(
-    images,
-    out_dir: str | os.PathLike,
-    *,
-    depth: str | os.PathLike | None = None,
-    calib: str | os.PathLike | None = None,
-    seed: int = 0,
-    variants: int = 1,
-    params=None,
-) -> list[FrameTask]:
-    """One task per source image (all its variants).
-
-    Parameters
-    ----------
-    images : list of path-like
-        Image files and/or folders.
-    out_dir : path-like
-    depth : path-like, optional
-        A depth PNG (only with a single image) or a folder of ``<stem>.png`` depth maps.
-    calib : path-like, optional
-        A calibration shared by every frame, or a folder of per-frame ``<stem>.txt``/``.json``.
-    seed, variants : int
-    params : LowLightParams, optional
-    """
-    from ..ops.lowlight import LowLightParams
-
-    params = params or LowLightParams()
-    if variants < 1:
-        raise ParameterError(f"variants must be >= 1, got {variants}")
-    files = collect_images(images)
-    depth_p = Path(depth) if depth is not None else None
-    calib_p = Path(calib) if calib is not None else None
-    if depth_p is not None and depth_p.is_file() and len(files) > 1:
-        raise ParameterError(
-            f"--depth {depth_p} is one file but {len(files)} images were given: pass a folder "
-            "of <stem>.png depth maps"
-        )
-    per_frame_calib = (
-        calib_p is not None
-        and calib_p.is_dir()
-        and not ((calib_p / "calib_cam_to_cam.txt").is_file())
-    )
-    job = LowLightJob(int(seed), int(variants), params.to_dict())
+    frames: list[Frame], out_dir: str | os.PathLike, settings: LowLightSettings
+) -> list[FrameTask[LowLightInput]]:
+    """One task per source image (all its variants): ``OUT/<sequence>/<frame>[_v<k>].png``
+    and the record sidecars ``OUT/records/<sequence>/<frame>[_v<k>].json``."""
     out = Path(out_dir)
     tasks = []
-    missing = []
-    for f in files:
-        stem = f.stem
-        d = depth_p
-        if depth_p is not None and depth_p.is_dir():
-            d = depth_p / f"{stem}.png"
-            if not d.is_file():
-                missing.append(str(d))
-        c = calib_p
-        if per_frame_calib:
-            c = find_by_stem(calib_p, stem, CALIB_SUFFIXES) or calib_p / f"{stem}.txt"
-        names = [_output_name(stem, k, variants) for k in range(variants)]
-        outputs = tuple(out / n for n in names) + tuple(
-            out / RECORDS / (Path(n).stem + ".json") for n in names
+    for f in frames:
+        outputs = {}
+        for k in range(settings.variants):
+            name = _output_name(f.key.frame, k, settings.variants)
+            stem = name[: -len(".png")]
+            outputs[f"image{k}"] = FrameKey(f.key.sequence, stem).path(out, ".png")
+            outputs[f"record{k}"] = FrameKey(f.key.sequence, stem).path(
+                out, ".json", prefix=RECORDS
+            )
+        if settings.variants == 1:
+            outputs = {"image": outputs["image0"], "record": outputs["record0"]}
+        inp = LowLightInput(
+            image=str(f.image),
+            depth=None if f.depth is None else str(f.depth),
+            calib=None if f.calib is None else str(f.calib),
         )
-        tasks.append(FrameTask(stem, {
-            "image": str(f), "depth": None if d is None else str(d),
-            "calib": None if c is None else str(c), "job": job,
-        }, outputs))  # fmt: skip
-    if missing:
-        more = f" (and {len(missing) - 3} more)" if len(missing) > 3 else ""
-        raise FormatError(f"no depth map for some images: {', '.join(missing[:3])}{more}")
+        sources = tuple(p for p in (f.image, f.depth, f.calib) if p is not None)
+        tasks.append(FrameTask(f.key, inp, outputs, sources))
     return tasks
 
 
-def lowlight_frame(task: FrameTask) -> dict:
-    """Per-frame job: read, synthesise every variant, write PNGs and record sidecars."""
-    from ..io.calib import load_calibration
-    from ..io.image import read_depth_png, read_image, write_image
-    from ..ops.lowlight import LowLightParams, lowlight
-    from ..random import frame_rng
+def _images_and_records(task: FrameTask) -> tuple[list[Path], list[Path]]:
+    roles = list(task.outputs)
+    images = [task.outputs[r] for r in roles if r.startswith("image")]
+    records = [task.outputs[r] for r in roles if r.startswith("record")]
+    return images, records
 
-    inp = task.inputs
-    job: LowLightJob = inp["job"]
-    params = LowLightParams(**job.params)
-    image = read_image(inp["image"])  # grey -> RGB; 16-bit refused with a clear message
-    depth = read_depth_png(inp["depth"]) if inp["depth"] else None
-    if depth is not None and depth.shape != image.shape[:2]:
-        raise FormatError(
-            f"{inp['depth']}: depth map is {depth.shape[1]}x{depth.shape[0]} but "
-            f"{Path(inp['image']).name} is {image.shape[1]}x{image.shape[0]}"
-        )
-    K = load_calibration(inp["calib"]).K if inp["calib"] else None
-    n_out = len(task.outputs) // 2
-    flares = 0
-    for k in range(n_out):
-        rng = frame_rng(job.seed, f"{task.frame_id}:{k}")
-        night, record = lowlight(image, depth=depth, K=K, rng=rng, params=params)
-        write_image(task.outputs[k], night)
-        row = {
-            "output": Path(task.outputs[k]).name, "source": inp["image"], "depth": inp["depth"],
-            "calib": inp["calib"], "frame_id": task.frame_id, "variant": k, "seed": job.seed,
-            "config": job.config(), "record": record.to_dict(),
-        }  # fmt: skip
-        with atomic_path(task.outputs[n_out + k]) as tmp:
-            tmp.write_text(json.dumps(row, sort_keys=True) + "\n", encoding="utf-8")
-        flares += record.flare_count
-    return {"images": n_out, "flares": flares}
+
+@dataclass(frozen=True)
+class LowLightJob:
+    """The per-frame job of ``lowlight-synth`` (picklable): read, synthesise every variant,
+    write the night PNGs and their record sidecars."""
+
+    settings: LowLightSettings
+
+    def config(self) -> dict:
+        """JSON-normalised settings (tuples as lists), as stored in every sidecar."""
+        s = self.settings
+        return json.loads(json.dumps({"seed": s.seed, "variants": s.variants, "params": s.params}))
+
+    def __call__(self, task: FrameTask[LowLightInput]) -> dict:
+        from ..io.calib import load_calibration
+        from ..io.image import read_depth_png, read_image, write_image
+        from ..ops.lowlight import LowLightParams, lowlight
+        from ..random import frame_rng
+
+        inp, s = task.inputs, self.settings
+        params = LowLightParams(**s.params)
+        image = read_image(inp.image)  # grey -> RGB; 16-bit refused with a clear message
+        depth = read_depth_png(inp.depth) if inp.depth else None
+        if depth is not None and depth.shape != image.shape[:2]:
+            raise FormatError(
+                f"{inp.depth}: depth map is {depth.shape[1]}x{depth.shape[0]} but "
+                f"{Path(inp.image).name} is {image.shape[1]}x{image.shape[0]}"
+            )
+        K = load_calibration(inp.calib).K if inp.calib else None
+        images, records = _images_and_records(task)
+        flares = 0
+        config = self.config()
+        for k, (img_out, rec_out) in enumerate(zip(images, records, strict=True)):
+            rng = frame_rng(s.seed, f"{task.frame_id}:{k}")
+            night, record = lowlight(image, depth=depth, K=K, rng=rng, params=params)
+            write_image(img_out, night)
+            row = {
+                "output": img_out.name, "source": inp.image, "depth": inp.depth,
+                "calib": inp.calib, "frame_id": task.frame_id, "variant": k, "seed": s.seed,
+                "config": config, "record": record.to_dict(),
+            }  # fmt: skip
+            with atomic_path(rec_out) as tmp:
+                tmp.write_text(json.dumps(row, sort_keys=True) + "\n", encoding="utf-8")
+            flares += record.flare_count
+        return {"images": len(images), "flares": flares}
 
 
 def _manifest_schema():
@@ -232,11 +215,10 @@ def write_manifest(out_dir: str | os.PathLike, tasks: list[FrameTask]) -> tuple[
 
     rows = []
     for t in tasks:
-        n_out = len(t.outputs) // 2
-        if not all(Path(p).is_file() for p in t.outputs):
+        if not all(Path(p).is_file() for p in t.outputs.values()):
             continue
-        for k in range(n_out):
-            side = _read_sidecar(Path(t.outputs[n_out + k]))
+        for side_path in _images_and_records(t)[1]:
+            side = _read_sidecar(side_path)
             rec = LowLightRecord.from_dict(side["record"])
             rows.append({
                 "output": side["output"], "source": side["source"], "depth": side["depth"],
@@ -251,25 +233,6 @@ def write_manifest(out_dir: str | os.PathLike, tasks: list[FrameTask]) -> tuple[
     return path, len(rows)
 
 
-def _check_existing(out_dir: str | os.PathLike, job_config: dict, overwrite: bool) -> None:
-    """Refuse to add to a folder holding outputs made with other settings (they would mix)."""
-    if overwrite:
-        return
-    records = Path(out_dir) / RECORDS
-    if not records.is_dir():
-        return
-    # Every run writes one configuration, so one sidecar tells which one the folder holds.
-    for p in sorted(records.glob("*.json")):
-        if p.name.startswith("."):  # a temporary file left by a killed run (removed later)
-            continue
-        if _read_sidecar(p).get("config") != job_config:
-            raise OutputError(
-                f"{out_dir} holds night images made with other settings (seed, variants or "
-                "parameters); use --overwrite or another output folder"
-            )
-        return
-
-
 def run_lowlight(
     images,
     out_dir: str | os.PathLike,
@@ -279,42 +242,62 @@ def run_lowlight(
     seed: int = 0,
     variants: int = 1,
     params=None,
-    executor=None,
-    overwrite: bool = False,
-    on_error: str = "stop",
-    progress: bool | None = None,
-) -> dict:
-    """Synthesise night images for a batch; see :func:`lowlight_tasks` for the inputs.
+    batch: Batch | None = None,
+) -> RunSummary:
+    """Synthesise night images for a batch.
+
+    Parameters
+    ----------
+    images : list of path-like
+        Image files and/or folders.
+    out_dir : path-like
+    depth : path-like, optional
+        A depth PNG (only with a single image) or a folder of depth maps matched by frame.
+    calib : path-like, optional
+        A calibration shared by every frame, or a folder of per-frame files.
+    seed, variants : int
+    params : LowLightParams, optional
+    batch : Batch, optional
 
     Returns
     -------
-    dict
-        Run summary (frames, processed, skipped, failed, seconds) plus ``images`` written,
-        ``flares`` placed and ``manifest_rows``.
+    RunSummary
+        Totals: ``images`` written, ``flares`` placed, ``manifest_rows``, ``manifest``.
     """
+    from ..io.sources import attach
     from ..ops.lowlight import LowLightParams
+    from ..validate import check_int_range
 
+    batch = batch or Batch()
     params = params or LowLightParams()
+    check_int_range(variants, "variants", low=1, high=MAX_VARIANTS)
+    frames = image_frames(images)
+    frames, missing = attach(
+        frames, depth, "depth", role="depth", option="--depth", shared_ok=False
+    )
+    if missing:
+        absent = [str(f.depth) for f in frames if not Path(f.depth).is_file()]
+        more = f" (and {len(absent) - 3} more)" if len(absent) > 3 else ""
+        raise FormatError(f"no depth map for some images: {', '.join(absent[:3])}{more}")
+    frames, _ = attach(frames, calib, "calib", role="calib", option="--calib")
     inputs = [*map(str, images)] + [str(p) for p in (depth, calib) if p is not None]
-    check_output_dir(out_dir, inputs)
-    tasks = lowlight_tasks(images, out_dir, depth=depth, calib=calib, seed=seed,
-                           variants=variants, params=params)  # fmt: skip
-    _check_existing(out_dir, tasks[0].inputs["job"].config(), overwrite)
+    out = check_output_dir(out_dir, inputs)
+    settings = LowLightSettings(int(seed), int(variants), params.to_dict())
+    tasks = lowlight_tasks(frames, out, settings)
     if calib is not None and depth is None:
         log.warning("--calib without --depth: the calibration is only used to place flares in 3-D")
-    summary = run_frames(
-        lowlight_frame,
-        tasks,
-        executor=executor,
-        overwrite=overwrite,
-        on_error=on_error,
-        progress=progress,
-        desc="lowlight",
+    spec = RunSpec(
+        "lowlight-synth", out, {"seed": settings.seed, "variants": settings.variants,
+                                **settings.params},
+        noun="night images", shared_outputs=(out / MANIFEST,),
+    )  # fmt: skip
+    summary = run_frames(LowLightJob(settings), tasks, batch=batch, spec=spec, desc="lowlight")
+    _, rows = write_manifest(out, tasks)
+    return summary.with_totals(
+        {
+            "images": int(summary.total("images")),
+            "flares": int(summary.total("flares")),
+            "manifest_rows": rows,
+            "manifest": str(out / MANIFEST),
+        }
     )
-    _, rows = write_manifest(out_dir, tasks)
-    out = summary.as_dict()
-    out["images"] = int(summary.total("images"))
-    out["flares"] = int(summary.total("flares"))
-    out["manifest_rows"] = rows
-    out["manifest"] = str(Path(out_dir) / MANIFEST)
-    return out

@@ -20,18 +20,17 @@ A step fails the run (after writing the report so far) unless it has ``allow_fai
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 import logging
 import os
 import re
 import shlex
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..errors import FormatError, ParameterError, SparsetoolsError
+from ..errors import FormatError, ParameterError
 from ..io.atomic import atomic_path
 
 __all__ = ["Step", "StepResult", "Workflow", "load_workflow", "run_workflow"]
@@ -143,58 +142,94 @@ def load_workflow(
     )
 
 
-def _run_step(step: Step) -> StepResult:
-    from ..cli.main import cli
+#: Runs one command line in-process: ``run(args) -> (exit code, stdout, stderr)``. The command
+#: line layer provides it (this layer never imports it).
+CommandRunner = Callable[[list[str]], tuple[int, str, str]]
 
-    out, err = io.StringIO(), io.StringIO()
+
+def _run_step(step: Step, run_command: CommandRunner) -> StepResult:
     t0 = time.perf_counter()
-    code = 0
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            # With standalone_mode=False click returns the code of ctx.exit(n) instead of exiting.
-            ret = cli.main(args=["-q", *step.run], prog_name="sparsetools", standalone_mode=False)
-            code = ret if isinstance(ret, int) else 0
-        except SystemExit as exc:  # ctx.exit() inside commands
-            code = int(exc.code or 0)
-        except SparsetoolsError as exc:
-            err.write(f"Error: {exc}\n")
-            code = 1
-        except Exception as exc:  # click usage errors and anything unexpected
-            msg = exc.format_message() if hasattr(exc, "format_message") else str(exc)
-            err.write(f"Error: {msg}\n")
-            code = getattr(exc, "exit_code", 1) or 1
-    return StepResult(step, code, out.getvalue(), err.getvalue(), time.perf_counter() - t0)
+    code, stdout, stderr = run_command(step.run)
+    return StepResult(step, code, stdout, stderr, time.perf_counter() - t0)
+
+
+def _previous_results(workflow: Workflow, path: Path) -> dict[str, StepResult]:
+    """Results of an earlier run (``steps.json``) by step name, for steps still in the config."""
+    try:
+        rows = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return {}
+    if not isinstance(rows, list):
+        return {}
+    steps = {s.name: s for s in workflow.steps}
+    out = {}
+    for r in rows:
+        if not isinstance(r, dict) or r.get("name") not in steps:
+            continue
+        step = steps[r["name"]]
+        if r.get("run") != step.run:
+            continue  # the step's command changed since: its old output no longer describes it
+        out[step.name] = StepResult(
+            step,
+            int(r.get("exit_code", 0)),
+            str(r.get("stdout", "")),
+            str(r.get("stderr", "")),
+            float(r.get("seconds", 0.0)),
+        )
+    return out
 
 
 def run_workflow(
-    workflow: Workflow, out_dir: str | os.PathLike, *, only: list[str] | None = None, echo=print
+    workflow: Workflow,
+    out_dir: str | os.PathLike,
+    *,
+    run_command: CommandRunner,
+    only: list[str] | None = None,
+    echo=print,
 ) -> list[StepResult]:
-    """Run the steps in order and write ``OUT/report.md``; raise on the first failing step."""
+    """Run the steps in order and write ``OUT/report.md``; raise on the first failing step.
+
+    Every command resumes (outputs that are up to date are kept), so a second run is cheap and
+    rewrites the report. With ``only``, just those steps run and the report keeps the other
+    steps' sections from the previous run (``OUT/steps.json``).
+    """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    names = [s.name for s in workflow.steps]
+    if only:
+        unknown = [n for n in only if n not in names]
+        if unknown:
+            raise ParameterError(
+                f"no step named {unknown[0]!r} in {workflow.source} (steps: {', '.join(names)})",
+                param="only",
+            )
+    previous = _previous_results(workflow, out / "steps.json") if only else {}
     results: list[StepResult] = []
     failed: StepResult | None = None
-    for step in workflow.steps:
+    for i, step in enumerate(workflow.steps):
         if only and step.name not in only:
             continue
-        echo(
-            f"[{len(results) + 1}/{len(workflow.steps)}] {step.name}: sparsetools {shlex.join(step.run)}"
-        )
-        res = _run_step(step)
+        echo(f"[{i + 1}/{len(workflow.steps)}] {step.name}: sparsetools {shlex.join(step.run)}")
+        res = _run_step(step, run_command)
         results.append(res)
         echo(f"    -> exit {res.exit_code} in {res.seconds:.1f} s")
         if res.exit_code != 0 and not step.allow_failure:
             failed = res
             break
-    write_report(workflow, results, out / "report.md")
+    ran = {r.step.name: r for r in results}
+    shown = [ran.get(s.name) or previous.get(s.name) for s in workflow.steps]
+    shown = [r for r in shown if r is not None]
+    write_report(workflow, shown, out / "report.md")
     steps = [
         {
             "name": r.step.name,
             "run": r.step.run,
             "exit_code": r.exit_code,
             "seconds": round(r.seconds, 2),
+            "stdout": r.stdout,
+            "stderr": r.stderr,
         }
-        for r in results
+        for r in shown
     ]
     with atomic_path(out / "steps.json") as tmp:
         tmp.write_text(json.dumps(steps, indent=1), encoding="utf-8")

@@ -1,0 +1,240 @@
+"""Source adapters: which frames a batch has, and each frame's files.
+
+Every batch command enumerates its inputs here, as :class:`Frame` records keyed by
+``(sequence, frame)`` (:class:`FrameKey`):
+
+- :func:`index_input` turns one path given for a role (``cloud``, ``image``, ``sparse``,
+  ``gt``, ``depth``, ``confidence``, ``calib``) into a :class:`FileIndex`, recognising the
+  layout: a file, a folder tree (``DIR/<sequence>/<frame>.ext``), a folder written by
+  sparsetools (read through its record), a KITTI raw drive / date folder / root of dates, a
+  KITTI object split, a KITTI depth-completion tree, a ``val_selection_cropped`` folder;
+- :func:`cloud_frames` builds the frames of point-cloud commands (``project``, ``beams``)
+  from clouds plus an optional calibration and image (shared, or per frame by key);
+- :func:`nuscenes_frames` builds frames from nuScenes tables;
+- :func:`match_keys` matches the files of another input to frames by key.
+
+Nothing here reads a cloud or an image, so a bad frame fails in its own job (and
+``--on-error skip`` can skip it).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from ...errors import FormatError, ParameterError
+from .frame import Frame, FrameKey, Sweep, check_key_part
+from .kitti import (
+    is_kitti_depth_completion,
+    is_kitti_object,
+    is_kitti_raw,
+    is_kitti_raw_calib_dir,
+    is_kitti_val_selection,
+    kitti_depth_completion_index,
+    kitti_object_index,
+    kitti_raw_drives,
+    kitti_raw_index,
+    kitti_val_selection_index,
+)
+from .nuscenes import nuscenes_frames
+from .tree import (
+    CALIB_SUFFIXES,
+    CLOUD_SUFFIXES,
+    DEPTH_SUFFIXES,
+    IMAGE_SUFFIXES,
+    FileIndex,
+    file_stem,
+    index_tree,
+    match_keys,
+)
+
+__all__ = [
+    "CALIB_SUFFIXES",
+    "CLOUD_SUFFIXES",
+    "DEPTH_SUFFIXES",
+    "IMAGE_SUFFIXES",
+    "ROLES",
+    "FileIndex",
+    "Frame",
+    "FrameKey",
+    "Sweep",
+    "attach",
+    "check_key_part",
+    "cloud_frames",
+    "file_stem",
+    "index_input",
+    "is_kitti_raw",
+    "is_kitti_raw_calib_dir",
+    "is_shared_calibration",
+    "kitti_object_index",
+    "kitti_raw_drives",
+    "kitti_raw_index",
+    "match_keys",
+    "nuscenes_frames",
+]
+
+#: Role of an input -> (file suffixes, the role its files have in a sparsetools output folder).
+ROLES = {
+    "cloud": (CLOUD_SUFFIXES, "cloud"),
+    "image": (IMAGE_SUFFIXES, "image"),
+    "sparse": (DEPTH_SUFFIXES, "depth"),
+    "gt": (DEPTH_SUFFIXES, "depth"),
+    "depth": (DEPTH_SUFFIXES, "depth"),
+    "confidence": (DEPTH_SUFFIXES, "confidence"),
+    "calib": (CALIB_SUFFIXES, "calib"),
+}
+
+
+def index_input(
+    path: str | os.PathLike,
+    role: str,
+    *,
+    option: str,
+    camera: int = 2,
+    name: str | None = None,
+) -> FileIndex:
+    """The files of one input path for ``role``, keyed by frame.
+
+    Parameters
+    ----------
+    path : path-like
+        A file or a folder (any layout of the module docstring).
+    role : {"cloud", "image", "sparse", "gt", "depth", "confidence", "calib"}
+    option : str
+        The option the path came from, for messages.
+    camera : int
+        KITTI camera index (``image_02``, ``proj_depth/*/image_02``).
+    name : str, optional
+        KITTI depth-completion map set (``velodyne_raw``, ``groundtruth``, ...).
+
+    Raises
+    ------
+    FormatError
+        Missing path, no files, or two files that are one frame.
+    """
+    if role not in ROLES:
+        raise ParameterError(f"unknown input role {role!r}")
+    suffixes, recorded_role = ROLES[role]
+    p = Path(path)
+    if p.is_dir():
+        if role in ("cloud", "image") and is_kitti_raw(p):
+            return kitti_raw_index(p, what=role, camera=camera, option=option)
+        if role in ("sparse", "gt", "depth", "confidence") and is_kitti_depth_completion(p):
+            dc_role = role if role in ("sparse", "gt") else "sparse"
+            return kitti_depth_completion_index(
+                p, role=dc_role, name=name, camera=camera, option=option
+            )
+        if is_kitti_val_selection(p) and role in ("image", "sparse", "gt", "calib"):
+            return kitti_val_selection_index(p, role=role, camera=camera, option=option)
+        if role == "cloud" and is_kitti_object(p):
+            return kitti_object_index(p, camera=camera)
+        if role == "image" and is_kitti_object(p):
+            base = p / "training" if (p / "training").is_dir() else p
+            return index_tree(base / f"image_{camera}", suffixes, option=option)
+        if role == "calib" and is_kitti_raw_calib_dir(p):
+            raise ParameterError(
+                f"{option}: {p} is one KITTI raw calibration, not a folder of files"
+            )
+    return index_tree(p, suffixes, option=option, role=recorded_role)
+
+
+def is_shared_calibration(path: str | os.PathLike) -> bool:
+    """A calibration shared by every frame: one file, or a KITTI raw calibration folder."""
+    p = Path(path)
+    return p.is_file() or is_kitti_raw_calib_dir(p)
+
+
+def attach(
+    frames: list[Frame],
+    path: str | os.PathLike | None,
+    field: str,
+    *,
+    role: str,
+    option: str,
+    shared_ok: bool = True,
+    camera: int = 2,
+    name: str | None = None,
+) -> tuple[list[Frame], int]:
+    """Give every frame its file of another input (``field``: ``image``, ``calib``, ``depth``).
+
+    A single file (or a KITTI raw calibration folder for ``calib``) is shared by every frame
+    when ``shared_ok``; a folder is indexed and matched by key. A frame without a match gets
+    the path its file would have (``DIR/<sequence>/<frame>.<first suffix>``) so it fails in its
+    own job, and is counted.
+
+    Returns
+    -------
+    frames : list of Frame
+    unmatched : int
+    """
+    from dataclasses import replace
+
+    if path is None:
+        return frames, 0
+    p = Path(path)
+    if not p.exists():
+        raise FormatError(f"{option}: {p}: no such file or folder")
+    if (p.is_file() or (field == "calib" and is_kitti_raw_calib_dir(p))) and (
+        shared_ok or len(frames) == 1
+    ):
+        return [replace(f, **{field: p}) for f in frames], 0
+    if p.is_file():
+        raise ParameterError(
+            f"{option}: {p} is one file but {len(frames)} frames were given: pass a folder of "
+            "files matched by frame"
+        )
+    index = index_input(p, role, option=option, camera=camera, name=name)
+    found = match_keys([f.key for f in frames], index.files)
+    suffix = ROLES[role][0][0]
+    out = []
+    for f in frames:
+        out.append(replace(f, **{field: found.get(f.key) or f.key.path(p, suffix)}))
+    return out, len(frames) - len(found)
+
+
+def cloud_frames(
+    paths: list[str | os.PathLike],
+    *,
+    calib: str | os.PathLike | None = None,
+    image: str | os.PathLike | None = None,
+    camera: int = 2,
+    option: str = "CLOUD",
+) -> list[Frame]:
+    """Frames of point-cloud inputs (files, folders, KITTI raw / object trees), sorted by key.
+
+    The layout's own calibration and image (KITTI raw date folder, KITTI object
+    ``calib/``, ``image_2/``) come with the frames; ``calib`` and ``image`` replace them:
+    one file or KITTI raw folder shared by every frame, or a folder matched by frame key.
+
+    Raises
+    ------
+    FormatError
+        Missing paths, no clouds, or two inputs that are the same frame.
+    """
+    from dataclasses import replace
+
+    if not paths:
+        raise ParameterError("no point clouds given")
+    frames: dict[FrameKey, Frame] = {}
+    for path in paths:
+        index = index_input(path, "cloud", option=option, camera=camera)
+        for key, cloud in index.files.items():
+            if key in frames:
+                raise FormatError(
+                    f"{frames[key].cloud} and {cloud} are the same frame '{key}': give each "
+                    "once, or folders whose frames differ"
+                )
+            frames[key] = Frame(
+                key=key,
+                cloud=cloud,
+                calib=index.calib.get(key),
+                image=index.images.get(key),
+                split=index.splits.get(key),
+            )
+    out = [frames[k] for k in sorted(frames)]
+    if calib is not None:
+        out, _ = attach(out, calib, "calib", role="calib", option="--calib", camera=camera)
+    if image is not None:
+        out, _ = attach(out, image, "image", role="image", option="--image", camera=camera)
+        # an image given explicitly gives the size, not the layout's image of another camera
+    return [replace(f) for f in out]

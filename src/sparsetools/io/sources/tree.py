@@ -1,0 +1,191 @@
+"""Per-frame files of a folder, keyed by :class:`FrameKey`, and matching between folders.
+
+A folder tree maps to keys by its structure: ``DIR/<frame>.ext`` is ``("", frame)`` and
+``DIR/<a>/<b>/<frame>.ext`` is ``("a/b", frame)``, the layout every batch command writes. A
+folder written by sparsetools is read through its record (``.sparsetools/``), so its side
+files (confidence maps, masks, calibrations) are never taken for frames. Two files that
+would be one frame (``x.png`` and ``x.jpg``) are an error naming both.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from collections import Counter, defaultdict
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ...errors import FormatError, ParameterError
+from ..atomic import TMP_PREFIX
+from ..provenance import RECORD_DIR, recorded_outputs
+from .frame import FrameKey
+
+__all__ = [
+    "CALIB_SUFFIXES",
+    "CLOUD_SUFFIXES",
+    "DEPTH_SUFFIXES",
+    "IMAGE_SUFFIXES",
+    "FileIndex",
+    "file_stem",
+    "index_tree",
+    "match_keys",
+]
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+DEPTH_SUFFIXES = (".png", ".npy")
+CLOUD_SUFFIXES = (".bin", ".pcd", ".ply", ".npy")
+CALIB_SUFFIXES = (".txt", ".json")
+#: Companion files named after a frame: ``<frame>_conf`` (jbf-expand confidence) and
+#: ``<frame>_sweep<k>`` (single radar sweeps beside their merged frame).
+_COMPANION = re.compile(r"^(?P<frame>.+)_(conf|sweep\d+)$")
+
+
+def file_stem(path: str | os.PathLike) -> str:
+    """Frame name of a file: ``a/000001.png`` -> ``000001``, ``x.pcd.bin`` -> ``x``."""
+    name = Path(path).name
+    if name.lower().endswith(".pcd.bin"):
+        return name[: -len(".pcd.bin")]
+    return name[: -len(Path(name).suffix)] if Path(name).suffix else name
+
+
+@dataclass(frozen=True)
+class FileIndex:
+    """Files of one input, by frame key.
+
+    Attributes
+    ----------
+    root : Path
+        What the user gave.
+    files : dict of FrameKey -> Path
+        In key order.
+    layout : str
+        How the keys were derived: ``file``, ``tree``, ``sparsetools``, ``kitti-raw``,
+        ``kitti-object``, ``kitti-depth-completion``, ``kitti-val-selection``.
+    splits : dict of FrameKey -> str
+        Splits the layout assigns (KITTI depth completion), else empty.
+    calib : dict of FrameKey -> Path
+        Calibration the layout provides per frame (KITTI raw date folder, KITTI object).
+    images : dict of FrameKey -> Path
+        Camera image the layout provides per frame (KITTI raw, KITTI object).
+    """
+
+    root: Path
+    files: dict[FrameKey, Path]
+    layout: str = "tree"
+    splits: dict[FrameKey, str] = field(default_factory=dict)
+    calib: dict[FrameKey, Path] = field(default_factory=dict)
+    images: dict[FrameKey, Path] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    @property
+    def is_single_file(self) -> bool:
+        return self.layout == "file"
+
+
+def _suffix_ok(name: str, suffixes: tuple[str, ...]) -> bool:
+    low = name.lower()
+    return any(low.endswith(s) for s in suffixes)
+
+
+def _add(files: dict[FrameKey, Path], key: FrameKey, path: Path, option: str) -> None:
+    if key in files:
+        raise FormatError(
+            f"{option}: {files[key]} and {path} are the same frame '{key}': "
+            "keep one of them or give the folders separately"
+        )
+    files[key] = path
+
+
+def _drop_companions(files: dict[FrameKey, Path]) -> dict[FrameKey, Path]:
+    present = set(files)
+    out = {}
+    for key, path in files.items():
+        m = _COMPANION.match(key.frame)
+        if m and FrameKey(key.sequence, m["frame"]) in present:
+            continue
+        out[key] = path
+    return out
+
+
+def index_tree(
+    path: str | os.PathLike,
+    suffixes: tuple[str, ...],
+    *,
+    option: str,
+    role: str | None = None,
+) -> FileIndex:
+    """Files with ``suffixes`` under ``path`` (a file, or a folder searched recursively).
+
+    Parameters
+    ----------
+    path : path-like
+    suffixes : tuple of str
+        Lower-case suffixes with the dot (``.pcd.bin`` is matched by ``.bin``).
+    option : str
+        The option or argument the path came from, for messages (``--rgb``).
+    role : str, optional
+        In a folder written by sparsetools, the recorded outputs of this role (``depth``,
+        ``image``, ``cloud``); default: the folder's only role.
+
+    Raises
+    ------
+    FormatError
+        The path does not exist, holds no such file, or two files are one frame.
+    """
+    root = Path(path)
+    if root.is_file():
+        if not _suffix_ok(root.name, suffixes):
+            raise FormatError(f"{option}: {root} is not a {'/'.join(suffixes)} file")
+        return FileIndex(root, {FrameKey("", file_stem(root)): root}, layout="file")
+    if not root.is_dir():
+        raise FormatError(f"{option}: {root}: no such file or folder")
+    recorded = recorded_outputs(root, role)
+    if recorded:
+        files = {}
+        for k in sorted(recorded, key=FrameKey.parse):
+            p = recorded[k]
+            if p.is_file() and _suffix_ok(p.name, suffixes):
+                files[FrameKey.parse(k)] = p
+        if files:
+            return FileIndex(root, files, layout="sparsetools")
+    files: dict[FrameKey, Path] = {}
+    for dirpath, dirnames, filenames in os.walk(root, followlinks=True):
+        dirnames[:] = sorted(d for d in dirnames if not d.startswith(".") and d != RECORD_DIR)
+        rel = Path(dirpath).relative_to(root).as_posix()
+        sequence = "" if rel == "." else rel
+        for name in sorted(filenames):
+            if name.startswith(".") or name.startswith(TMP_PREFIX):
+                continue
+            if not _suffix_ok(name, suffixes) or not (Path(dirpath) / name).is_file():
+                continue  # a dangling link or a special file is not a frame
+            try:
+                key = FrameKey(sequence, file_stem(name))
+            except ParameterError as exc:
+                raise FormatError(f"{option}: {Path(dirpath) / name}: {exc}") from exc
+            _add(files, key, Path(dirpath) / name, option)
+    files = _drop_companions(files)
+    if not files:
+        raise FormatError(f"{option}: no {'/'.join('*' + s for s in suffixes)} files in {root}")
+    return FileIndex(root, dict(sorted(files.items())), layout="tree")
+
+
+def match_keys(keys: Iterable[FrameKey], index: Mapping[FrameKey, Path]) -> dict[FrameKey, Path]:
+    """The file of each key in ``index``: the same key, else the same frame name when that
+    name is unique among ``keys`` and in ``index`` (a flat folder beside a sequence tree)."""
+    keys = list(keys)
+    names = Counter(k.frame for k in keys)
+    by_name: dict[str, list[FrameKey]] = defaultdict(list)
+    for k in index:
+        by_name[k.frame].append(k)
+    out = {}
+    for k in keys:
+        if k in index:
+            out[k] = index[k]
+            continue
+        cands = by_name.get(k.frame, [])
+        if len(cands) == 1 and names[k.frame] == 1:
+            out[k] = index[cands[0]]
+    return out

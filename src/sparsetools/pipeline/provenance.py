@@ -1,0 +1,441 @@
+"""Make-like resume: an output is up to date when the same command, with the same settings
+and sparsetools version, made it from inputs that have not changed.
+
+On every run into a folder (:class:`OutputFolder`):
+
+- the folder's record (:mod:`sparsetools.io.provenance`) is read; a folder made by another
+  command, version or settings is refused with a one-line error naming the first setting
+  that differs (``out holds depth maps made with --max-depth 80, not 20: use --overwrite or
+  another -o``);
+- each frame is then up to date (skipped), new, or recomputed because one of its inputs
+  changed (size, mtime, or the hash of a small file) or one of its outputs is missing;
+- outputs that exist but are in no record (a foreign file, an older sparsetools) are refused
+  unless ``--overwrite``;
+- ``--overwrite`` recomputes every frame and removes the outputs the folder's record lists
+  for frames this run does not make (so the folder holds one run's settings); files the
+  record does not list are never touched.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import os
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+
+from .._version import __version__
+from ..errors import OutputError
+from ..io.provenance import (
+    RECORD_DIR,
+    FileIdentity,
+    FrameJournal,
+    FrameRecord,
+    RunRecord,
+    file_identity,
+    hold_lock,
+    read_file_record,
+    read_frame_records,
+    read_run_record,
+    remove_empty_record_dir,
+    write_file_record,
+    write_frame_records,
+    write_run_record,
+)
+
+__all__ = ["OutputFile", "OutputFolder", "Plan", "settings_dict", "settings_difference"]
+
+log = logging.getLogger(__name__)
+
+
+def _normalise(value):
+    return json.loads(json.dumps(value, default=_json_default, sort_keys=True))
+
+
+def _json_default(o):
+    if dataclasses.is_dataclass(o):
+        return settings_dict(o)
+    if isinstance(o, Path):
+        return str(o)
+    if hasattr(o, "tolist"):
+        return o.tolist()
+    if isinstance(o, (set, frozenset)):
+        return sorted(o)
+    raise TypeError(f"setting of type {type(o).__name__} is not JSON serialisable")
+
+
+def settings_dict(settings) -> dict:
+    """JSON-normalised settings of a dataclass (or mapping), comparable with a record's copy.
+
+    A dataclass field with ``metadata={"provenance": False}`` is left out (it does not change
+    what is computed).
+    """
+    if settings is None:
+        return {}
+    if dataclasses.is_dataclass(settings):
+        items = {
+            f.name: getattr(settings, f.name)
+            for f in dataclasses.fields(settings)
+            if f.metadata.get("provenance", True)
+        }
+    else:
+        items = dict(settings)
+    return _normalise(items)
+
+
+def option_names(settings) -> dict[str, str]:
+    """Setting name -> command-line option (field metadata ``option``, else ``--name``)."""
+    names = {}
+    if dataclasses.is_dataclass(settings):
+        for f in dataclasses.fields(settings):
+            opt = f.metadata.get("option")
+            if opt:
+                names[f.name] = opt
+    return names
+
+
+def _show(value) -> str:
+    if value is None:
+        return "none"
+    if isinstance(value, bool):
+        return "on" if value else "off"
+    if isinstance(value, float):
+        return f"{value:g}" if math.isfinite(value) else str(value)
+    if isinstance(value, list):
+        return ",".join(_show(v) for v in value) or "(empty)"
+    if isinstance(value, dict):
+        return json.dumps(value, sort_keys=True)
+    return str(value)
+
+
+def settings_difference(
+    old: Mapping, new: Mapping, names: Mapping[str, str] | None = None
+) -> tuple[str, str, str] | None:
+    """(option, old value, new value) of the first setting that differs, or None."""
+    names = names or {}
+    for key in sorted(set(old) | set(new)):
+        a, b = old.get(key), new.get(key)
+        if a == b:
+            continue
+        if isinstance(a, dict) and isinstance(b, dict):
+            inner = settings_difference(a, b)
+            if inner is not None:
+                opt = names.get(key) or "--" + key.replace("_", "-")
+                sub = inner[0].lstrip("-")
+                return f"{opt} {sub}", inner[1], inner[2]
+        opt = names.get(key) or "--" + key.replace("_", "-")
+        return opt, _show(a), _show(b)
+    return None
+
+
+@dataclasses.dataclass
+class Plan:
+    """Tasks of a run by state: to compute (new or recomputed) and up to date."""
+
+    todo: list
+    up_to_date: list
+    recomputed: set[str]
+    stats: dict[str, dict] = dataclasses.field(default_factory=dict)
+
+
+class OutputFolder:
+    """The resume rule of one output folder (use as a context manager: it holds the lock).
+
+    Parameters
+    ----------
+    out : path-like
+    command : str
+        ``project``, ``beams``, ... (recorded, and compared on the next run).
+    settings : dataclass or mapping
+        What changes the results (compared on the next run).
+    noun : str
+        What the folder holds, for messages (``depth maps``).
+    overwrite : bool
+    """
+
+    def __init__(
+        self,
+        out,
+        command: str,
+        settings,
+        *,
+        noun: str = "results",
+        overwrite: bool = False,
+        options: Mapping[str, str] | None = None,
+    ):
+        self.out = Path(out)
+        self.command = command
+        self.settings = settings_dict(settings)
+        self.names = {**option_names(settings), **(options or {})}
+        self.noun = noun
+        self.overwrite = overwrite
+        self.records: dict[str, FrameRecord] = {}
+        self.new_records: dict[str, FrameRecord] = {}
+        self.dropped: set[str] = set()
+        self._identity_cache: dict[str, FileIdentity] = {}
+        self._lock = None
+        self._journal = None
+        self.removed_stale = 0
+        self._started = False
+        self._had_record = False
+        self._run_written = False
+        self._outputs: list[Path] = []
+
+    # -- opening: lock and settings check --------------------------------------------------
+    def __enter__(self) -> OutputFolder:
+        self._fresh_lock = not (self.out / RECORD_DIR / "lock").exists()
+        self._lock = hold_lock(self.out)
+        self._lock.__enter__()
+        try:
+            self._check_record()
+        except BaseException:
+            self._lock.__exit__(None, None, None)
+            if self._fresh_lock:
+                remove_empty_record_dir(self.out)  # a refused run leaves no lock file behind
+            raise
+        return self
+
+    def _check_record(self) -> None:
+        old = read_run_record(self.out)
+        if old is not None and not self.overwrite:
+            if old.command != self.command:
+                raise OutputError(
+                    f"{self.out} holds the output of `sparsetools {old.command}`, not "
+                    f"`{self.command}`: use another -o (or --overwrite to replace it)"
+                )
+            diff = settings_difference(old.settings, self.settings, self.names)
+            if diff is not None:
+                opt, a, b = diff
+                raise OutputError(
+                    f"{self.out} holds {self.noun} made with {opt} {a}, not {b}: "
+                    "use --overwrite or another -o"
+                )
+            if old.version != __version__:
+                raise OutputError(
+                    f"{self.out} holds {self.noun} made by sparsetools {old.version}, this is "
+                    f"{__version__}: use --overwrite or another -o"
+                )
+        self.records = {} if old is None else read_frame_records(self.out)
+        self._had_record = old is not None
+
+    def __exit__(self, *exc) -> None:
+        try:
+            if self._journal is not None:
+                self._journal.__exit__(*exc)
+                self._journal = None
+            if self._started:
+                self._compact()
+        finally:
+            self._lock.__exit__(*exc)
+            wrote = self.new_records or any(Path(p).exists() for p in self._outputs)
+            if not self._had_record and not wrote:
+                remove_empty_record_dir(self.out, run_record=True)
+            elif not self._started and self._fresh_lock:
+                remove_empty_record_dir(self.out)
+
+    # -- planning --------------------------------------------------------------------------
+    def identity(self, path: str | os.PathLike) -> FileIdentity:
+        key = os.fspath(path)
+        ident = self._identity_cache.get(key)
+        if ident is None:
+            ident = file_identity(path)
+            self._identity_cache[key] = ident
+        return ident
+
+    def _rel(self, path: Path) -> str:
+        try:
+            return Path(os.path.abspath(path)).relative_to(os.path.abspath(self.out)).as_posix()
+        except ValueError:
+            return os.path.abspath(path)
+
+    def plan(self, tasks: Iterable, complete=None, *, shared: Iterable = ()) -> Plan:
+        """Split ``tasks`` into what to compute and what is up to date.
+
+        ``complete(task) -> bool`` overrides the default completeness test (every output
+        file exists).
+        """
+        tasks = list(tasks)
+        todo, fresh, recomputed = [], [], set()
+        stats: dict[str, dict] = {}
+        foreign = []
+        if not self._had_record and not self.overwrite:
+            foreign.extend(Path(p) for p in shared if Path(p).exists())
+        is_complete = complete or (lambda t: all(Path(p).is_file() for p in t.outputs.values()))
+        this_run = {t.frame_id for t in tasks}
+        for t in tasks:
+            rec = self.records.get(t.frame_id)
+            if self.overwrite:
+                todo.append(t)
+                continue
+            if rec is None:
+                existing = [p for p in t.outputs.values() if Path(p).exists()]
+                if existing and not self._had_record:
+                    foreign.append(existing[0])
+                todo.append(t)
+                continue
+            outputs_same = rec.outputs == {r: self._rel(p) for r, p in t.outputs.items()}
+            inputs_now = tuple(self.identity(p) for p in t.sources)
+            inputs_same = len(inputs_now) == len(rec.inputs) and all(
+                a.same_file(b) for a, b in zip(rec.inputs, inputs_now, strict=True)
+            )
+            if outputs_same and inputs_same and is_complete(t):
+                fresh.append(t)
+                stats[t.frame_id] = dict(rec.stats)
+                if any(a != b for a, b in zip(rec.inputs, inputs_now, strict=True)):
+                    # touched but equal by hash: refresh the record so the next run is cheap
+                    self.new_records[t.frame_id] = self._record(t, rec.stats)
+                continue
+            if not inputs_same:
+                recomputed.add(t.frame_id)
+            todo.append(t)
+        if foreign:
+            more = f" (and {len(foreign) - 1} more)" if len(foreign) > 1 else ""
+            raise OutputError(
+                f"{foreign[0]} exists{more} but {self.out} has no record of what made it "
+                "(another tool or an older sparsetools): use --overwrite or another -o"
+            )
+        if self.overwrite:
+            self._remove_stale(this_run)
+        # Nothing refused: the folder is this run's. Its record is written before any output,
+        # so an interrupted run resumes; a run that wrote nothing removes it again.
+        self._started = True
+        self._outputs = [p for t in tasks for p in t.outputs.values()] + [Path(p) for p in shared]
+        self._write_run()
+        return Plan(todo, fresh, recomputed, stats)
+
+    def _write_run(self) -> None:
+        if not self._run_written:
+            write_run_record(self.out, RunRecord(self.command, __version__, self.settings))
+            self._run_written = True
+
+    def _remove_stale(self, this_run: set[str]) -> None:
+        """With --overwrite: remove recorded outputs of frames this run does not make."""
+        stale = [k for k in self.records if k not in this_run]
+        n = 0
+        for k in stale:
+            for rel in self.records[k].outputs.values():
+                p = self.out / rel
+                if p.is_file():
+                    try:
+                        p.unlink()
+                        n += 1
+                    except OSError as exc:
+                        log.warning("cannot remove stale output %s: %s", p, exc)
+            self.dropped.add(k)
+        if n:
+            log.warning(
+                "--overwrite: removed %d output(s) of %d frame(s) of the previous run",
+                n,
+                len(stale),
+            )
+        self.removed_stale = n
+
+    # -- recording -------------------------------------------------------------------------
+    def _record(self, task, stats=None) -> FrameRecord:
+        # Timings (``t_*``) describe one run, not the frame: they are not recorded, so the
+        # record of a resumed run equals that of an uninterrupted one.
+        kept = {k: v for k, v in (stats or {}).items() if not str(k).startswith("t_")}
+        return FrameRecord(
+            task.frame_id,
+            {role: self._rel(p) for role, p in task.outputs.items()},
+            tuple(self.identity(p) for p in task.sources),
+            kept,
+        )
+
+    def record_done(self, task, stats=None) -> None:
+        """Record a frame whose outputs are all in place (with its statistics)."""
+        rec = self._record(task, stats)
+        self.new_records[task.frame_id] = rec
+        self._write_run()
+        if self._journal is None:
+            self._journal = FrameJournal(self.out).__enter__()
+        self._journal.append(rec)
+
+    def record_failed(self, task) -> None:
+        """A failed frame keeps no record (it is recomputed on the next run)."""
+        self.dropped.add(task.frame_id)
+        self.new_records.pop(task.frame_id, None)
+
+    def forget_inputs(self, task) -> None:
+        """Drop cached identities of ``task``'s inputs (a job that rewrote one of them)."""
+        for p in task.sources:
+            self._identity_cache.pop(os.fspath(p), None)
+
+    def _compact(self) -> None:
+        records = {k: v for k, v in self.records.items() if k not in self.dropped}
+        if self.overwrite:
+            records = {}
+        records.update(self.new_records)
+        write_frame_records(self.out, records)
+
+
+class OutputFile:
+    """The resume rule for a command that writes ONE file (``viz``, ``eval -o``).
+
+    The file is up to date when its record (``<dir>/.sparsetools/files/<name>.json``) names
+    the same command, settings and version and its inputs are unchanged; an existing file
+    without such a record, or made otherwise, is refused unless ``overwrite``.
+
+    Parameters
+    ----------
+    path : path-like
+    command : str
+    settings : dataclass or mapping
+    sources : iterable of path-like
+        Input files.
+    overwrite : bool
+    """
+
+    def __init__(self, path, command: str, settings, sources, *, overwrite: bool = False):
+        self.path = Path(path)
+        self.command = command
+        self.settings = settings_dict(settings)
+        self.names = option_names(settings)
+        self.sources = tuple(Path(p) for p in sources)
+        self.overwrite = overwrite
+
+    def _identities(self) -> tuple[FileIdentity, ...]:
+        return tuple(file_identity(p) for p in self.sources)
+
+    def up_to_date(self) -> bool:
+        """True when the file need not be written again; raises when it may not be."""
+        if self.path.exists() and not self.path.is_file():
+            raise OutputError(f"{self.path} exists and is not a file")
+        if self.overwrite or not self.path.exists():
+            return False
+        rec = read_file_record(self.path)
+        if rec is None:
+            raise OutputError(
+                f"{self.path} exists and was not written by this command: use --overwrite or "
+                "another -o"
+            )
+        run, frame = rec
+        if run.command != self.command:
+            raise OutputError(
+                f"{self.path} was written by `sparsetools {run.command}`, not `{self.command}`: "
+                "use --overwrite or another -o"
+            )
+        diff = settings_difference(run.settings, self.settings, self.names)
+        if diff is not None:
+            opt, a, b = diff
+            raise OutputError(
+                f"{self.path} was made with {opt} {a}, not {b}: use --overwrite or another -o"
+            )
+        now = self._identities()
+        same = (
+            run.version == __version__
+            and len(now) == len(frame.inputs)
+            and all(a.same_file(b) for a, b in zip(frame.inputs, now, strict=True))
+            and frame.key == self.path.name
+        )
+        return same
+
+    def record(self) -> None:
+        """Record the file just written."""
+        write_file_record(
+            self.path,
+            RunRecord(self.command, __version__, self.settings),
+            FrameRecord(self.path.name, {"file": self.path.name}, self._identities()),
+        )
