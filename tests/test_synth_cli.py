@@ -32,6 +32,23 @@ def test_refuses_to_write_into_a_non_empty_folder(tmp_path):
     assert sorted(p.name for p in (tmp_path / "a").iterdir()) == ["keep.txt"]
 
 
+def test_rerun_is_a_no_op_and_other_options_are_refused(tmp_path):
+    runner = CliRunner()
+    out = tmp_path / "a"
+    assert runner.invoke(cli, ["synth-scene", str(out), *SMALL]).exit_code == 0
+    before = {p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file()}
+    r = runner.invoke(cli, ["synth-scene", str(out), *SMALL, "--json"])
+    assert r.exit_code == 0 and json.loads(r.stdout)["up_to_date"] is True
+    assert {p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file()} == before
+    r = runner.invoke(cli, ["synth-scene", str(out), *SMALL[:-1], "6"])
+    assert r.exit_code == 1 and "made with --seed 5, not 6" in r.stderr
+    # a file of the scene lost: regenerated (the folder is the command's own)
+    (out / "velodyne" / "000000.bin").unlink()
+    r = runner.invoke(cli, ["synth-scene", str(out), *SMALL, "--json"])
+    assert r.exit_code == 0 and "up_to_date" not in json.loads(r.stdout)
+    assert (out / "velodyne" / "000000.bin").is_file()
+
+
 def test_bad_sizes_are_usage_errors(tmp_path):
     r = CliRunner().invoke(cli, ["synth-scene", str(tmp_path / "a"), "--image-size", "64by24"])
     assert r.exit_code == 2 and "WxH" in r.stderr

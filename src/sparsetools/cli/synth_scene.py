@@ -128,7 +128,7 @@ def synth_scene(
       sparsetools synth-scene out/check --check sample_data/synthetic   # reproducible?
       sparsetools synth-scene out/video --video --sequences 4 --frames 30 --image-size 416x128
     """
-    from ..synth import generate_scene
+    from ..pipeline.synth_scene import run_synth_scene
 
     ctx = click.get_current_context()
 
@@ -167,9 +167,9 @@ def synth_scene(
         return
 
     if video:
-        from ..synth.video_files import write_video
+        from ..pipeline.synth_scene import run_synth_video
 
-        summary = write_video(
+        summary = run_synth_video(
             out_dir,
             seed=seed,
             sequences=sequences,
@@ -181,12 +181,12 @@ def synth_scene(
             workers=workers,
             overwrite=overwrite,
         )
-        del summary["lidar_points"]  # per frame: too long for the terminal summary
-        emit_summary(summary, as_json=as_json, title=f"synthetic videos written to {out_dir}")
+        summary.pop("lidar_points", None)  # per frame: too long for the terminal summary
+        emit_summary(summary, as_json=as_json, title=f"synthetic videos in {out_dir}")
         return
 
     width, height = image_size
-    summary = generate_scene(
+    summary = run_synth_scene(
         out_dir,
         seed=seed,
         frames=frames,
@@ -196,4 +196,4 @@ def synth_scene(
         overwrite=overwrite,
         stem_prefix=stem_prefix,
     )
-    emit_summary(summary, as_json=as_json, title=f"synthetic scene written to {out_dir}")
+    emit_summary(summary, as_json=as_json, title=f"synthetic scene in {out_dir}")

@@ -45,7 +45,14 @@ from ..io.provenance import (
     write_run_record,
 )
 
-__all__ = ["OutputFile", "OutputFolder", "Plan", "settings_dict", "settings_difference"]
+__all__ = [
+    "OutputFile",
+    "OutputFolder",
+    "OutputTree",
+    "Plan",
+    "settings_dict",
+    "settings_difference",
+]
 
 log = logging.getLogger(__name__)
 
@@ -439,3 +446,63 @@ class OutputFile:
             RunRecord(self.command, __version__, self.settings),
             FrameRecord(self.path.name, {"file": self.path.name}, self._identities()),
         )
+
+
+class OutputTree:
+    """The resume rule for a command that makes a whole folder at once (``synth-scene``).
+
+    The folder is up to date when its record names the same command, settings and version and
+    every file the record lists exists; a folder made otherwise, or a non-empty folder without
+    a record, is refused unless ``overwrite``.
+    """
+
+    KEY = "tree"
+
+    def __init__(self, out, command: str, settings, *, noun: str, overwrite: bool = False):
+        self.out = Path(out)
+        self.command = command
+        self.settings = settings_dict(settings)
+        self.names = option_names(settings)
+        self.noun = noun
+        self.overwrite = overwrite
+
+    def up_to_date(self) -> bool:
+        if self.out.exists() and not self.out.is_dir():
+            raise OutputError(f"{self.out} exists and is not a folder")
+        if self.overwrite or not self.out.is_dir() or not any(self.out.iterdir()):
+            return False
+        run = read_run_record(self.out)
+        if run is None:
+            raise OutputError(
+                f"{self.out} is not empty and has no record of what made it: use --overwrite "
+                "or another folder"
+            )
+        if run.command != self.command:
+            raise OutputError(
+                f"{self.out} holds the output of `sparsetools {run.command}`, not "
+                f"`{self.command}`: use another folder (or --overwrite to replace it)"
+            )
+        diff = settings_difference(run.settings, self.settings, self.names)
+        if diff is not None:
+            opt, a, b = diff
+            raise OutputError(
+                f"{self.out} holds {self.noun} made with {opt} {a}, not {b}: use --overwrite "
+                "or another folder"
+            )
+        rec = read_frame_records(self.out).get(self.KEY)
+        return (
+            run.version == __version__
+            and rec is not None
+            and all((self.out / rel).is_file() for rel in rec.outputs.values())
+        )
+
+    def record(self, files) -> None:
+        """Record the files the command wrote (paths inside the folder)."""
+        outputs = {}
+        for i, f in enumerate(sorted(Path(f) for f in files)):
+            try:
+                outputs[f"file{i}"] = f.resolve().relative_to(self.out.resolve()).as_posix()
+            except ValueError:
+                continue
+        write_run_record(self.out, RunRecord(self.command, __version__, self.settings))
+        write_frame_records(self.out, {self.KEY: FrameRecord(self.KEY, outputs)})

@@ -16,6 +16,10 @@ def _digest(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
+def _scene_file(p: Path) -> bool:
+    return p.is_file() and ".sparsetools" not in p.parts
+
+
 def compare_trees(reference: str | os.PathLike, candidate: str | os.PathLike) -> dict:
     """Compare two folders file by file (SHA-256).
 
@@ -26,8 +30,9 @@ def compare_trees(reference: str | os.PathLike, candidate: str | os.PathLike) ->
         ``extra`` (in candidate only) and ``different`` (relative paths).
     """
     ref, cand = Path(reference), Path(candidate)
-    a = {p.relative_to(ref).as_posix() for p in ref.rglob("*") if p.is_file()}
-    b = {p.relative_to(cand).as_posix() for p in cand.rglob("*") if p.is_file()}
+    # the folder's record of what made it (.sparsetools/) is not part of the scene
+    a = {p.relative_to(ref).as_posix() for p in ref.rglob("*") if _scene_file(p)}
+    b = {p.relative_to(cand).as_posix() for p in cand.rglob("*") if _scene_file(p)}
     common = sorted(a & b)
     different = [rel for rel in common if _digest(ref / rel) != _digest(cand / rel)]
     return {
