@@ -443,13 +443,13 @@ def test_intrinsic_error_by_hand():
     e = intrinsic_error(r, l)
     # Evaluated: (0,0) 10 vs 12 and (0,2) 20 vs 20; (1,1) has LiDAR above 80 m.
     assert e["evaluated"] == 2 and e["points"] == 4
-    assert e["density"] == pytest.approx(100 * 4 / 6)
+    assert e["density_percent"] == pytest.approx(100 * 4 / 6)
     assert e["delta1"] == 1.0 and e["delta2"] == 1.0
     assert e["rmse"] == pytest.approx(math.sqrt(4 / 2))
     e = intrinsic_error(r, l, max_depth=200)
     assert e["evaluated"] == 3 and e["delta1"] == pytest.approx(2 / 3)
     assert e["delta2"] == pytest.approx(2 / 3)  # 100/30 = 3.33 > 1.5625
-    assert list(e) == ["delta1", "delta2", "rmse", "points", "density", "evaluated"]
+    assert list(e) == ["delta1", "delta2", "rmse", "points", "density_percent", "evaluated"]
 
 
 def test_intrinsic_error_without_overlap_and_bad_shapes():

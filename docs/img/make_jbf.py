@@ -121,7 +121,7 @@ def table(title: str, frames) -> None:
         e = mean_intrinsic_error(results[name])
         print(
             f"| {LABELS[name]} | {e['delta1']:.2f} | {e['delta2']:.2f} | {e['rmse']:.2f} | "
-            f"{e['points']:,.0f} | {e['density']:.2f} | {e['points'] / raw_points:,.0f} |"
+            f"{e['points']:,.0f} | {e['density_percent']:.2f} | {e['points'] / raw_points:,.0f} |"
         )
     return first
 

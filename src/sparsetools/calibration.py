@@ -46,6 +46,11 @@ def crop_intrinsics(K: np.ndarray, top: int, left: int) -> np.ndarray:
     return shift @ np.asarray(K, dtype=np.float64)
 
 
+#: Largest deviation of ``R^T R`` from the identity accepted in a sensor-to-camera rotation
+#: (KITTI's files, printed with 6-9 digits, are orthonormal to ~1e-6).
+RIGID_TOLERANCE = 1e-4
+
+
 @dataclass(frozen=True)
 class Calibration:
     """Pinhole camera with the rigid transform from a depth sensor (LiDAR, radar) to it.
@@ -90,6 +95,19 @@ class Calibration:
             )
         if abs(np.linalg.det(T[:3, :3])) < 1e-9:
             raise CalibrationError(f"T_cam_from_sensor has a singular rotation{where}")
+        if np.max(np.abs(T[3] - (0.0, 0.0, 0.0, 1.0))) > 1e-9:
+            raise CalibrationError(
+                f"T_cam_from_sensor is not a rigid transform: its bottom row is "
+                f"{np.array2string(T[3], precision=4)}, not [0 0 0 1]{where}"
+            )
+        R = T[:3, :3]
+        err = float(np.max(np.abs(R.T @ R - np.eye(3))))
+        if err > RIGID_TOLERANCE or np.linalg.det(R) < 0:
+            raise CalibrationError(
+                "T_cam_from_sensor is not a rigid transform: its 3x3 part is not a rotation "
+                f"(max |R^T R - I| = {err:.3g}, det {np.linalg.det(R):.4g}; a scaled R0_rect?)"
+                f"{where}"
+            )
         P = None
         if self.P is not None:
             P = np.asarray(self.P, dtype=np.float64)
@@ -146,6 +164,23 @@ class Calibration:
     def with_size(self, width: int, height: int) -> Calibration:
         """The same calibration for an image of ``width`` x ``height`` pixels."""
         return replace(self, width=int(width), height=int(height))
+
+    def for_size(self, width: int, height: int, *, given_by: str = "the image") -> Calibration:
+        """:meth:`with_size`, refusing a size that contradicts the calibration's own.
+
+        A calibration that knows its image size (KITTI raw ``S_rect``, a JSON ``width`` /
+        ``height``, nuScenes) has intrinsics for that size only: another size would keep the
+        principal point of the first and misplace every point.
+        """
+        if self.width is not None and self.height is not None:
+            if (self.width, self.height) != (int(width), int(height)):
+                raise CalibrationError(
+                    f"{given_by} says {int(width)}x{int(height)} but the calibration "
+                    f"{self.source or ''} is for {self.width}x{self.height} images: its "
+                    "intrinsics do not fit (scale them with --resize instead)"
+                )
+            return self
+        return self.with_size(width, height)
 
     def resized(self, scale: float) -> Calibration:
         """Calibration of the image resized by ``scale`` (METHODS.md section 0).

@@ -14,6 +14,7 @@ from .options import (
     gt_option,
     json_option,
     output_dir_option,
+    quiet_debug_options,
     seed_option,
 )
 
@@ -257,6 +258,7 @@ def _fmt(v) -> str:
 @dataset.command("info")
 @click.argument("dataset_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @json_option(help="Print the information as JSON.")
+@quiet_debug_options
 def info(dataset_dir, as_json):
     """Counts per split, image sizes, density statistics, file sizes, schema version.
 
@@ -338,6 +340,7 @@ def _human(n: int) -> str:
     help="Threads reading and decoding files.",
 )
 @json_option(help="Print the report as JSON.")
+@quiet_debug_options
 def verify(dataset_dir, no_hash, workers, as_json):
     """Check every file: present, decodable, sizes consistent, SHA-256 matching the manifest.
 

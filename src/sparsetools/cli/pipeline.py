@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from .options import output_dir_option
+from .options import output_dir_option, quiet_debug_options
 
 
 def _overrides(ctx, param, values):
@@ -68,6 +68,7 @@ def _run(config: Path, out_dir: Path, overrides: dict, only: tuple[str, ...]) ->
     help="Override a config variable (repeatable), e.g. --set data=/data/kitti.",
 )
 @click.option("--only", multiple=True, metavar="STEP", help="Run only the named step(s).")
+@quiet_debug_options
 def pipeline(config, out_dir, overrides, only):
     """Run the steps of a YAML/TOML CONFIG in order and write OUT/report.md.
 
@@ -92,6 +93,7 @@ def pipeline(config, out_dir, overrides, only):
     show_default=True,
     help="The demo config (run from the repository root).",
 )
+@quiet_debug_options
 def demo(out_dir, config):
     """Run the whole pipeline on the bundled sample data (what `make demo` does).
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from .options import json_option
+from .options import json_option, quiet_debug_options
 
 _COLUMNS = (
     ("points", "points", "{:d}"),
@@ -49,6 +49,7 @@ def _cell(value, fmt: str) -> str:
     help="Reference depths above this (m) are not evaluated.",
 )
 @json_option(help="Print per-frame and aggregate values as JSON.")
+@quiet_debug_options
 def stats(depth, reference, max_depth, as_json):
     """Points, density and depth range of depth maps; with --reference, intrinsic error.
 
@@ -58,7 +59,10 @@ def stats(depth, reference, max_depth, as_json):
 
     \b
     Examples:
-      sparsetools stats out/beams4
+      sparsetools beams out/scene/velodyne --n 4 -o out/beams4
+      sparsetools project out/beams4 --calib out/scene/calib --image-size 1242x375 \\
+          -o out/depth4
+      sparsetools stats out/depth4
       sparsetools stats out/jbf --reference out/lidar --json
     """
     from ..pipeline.stats import depth_stats_files

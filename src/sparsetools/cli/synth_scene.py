@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 from click.core import ParameterSource
 
-from .options import emit_summary, json_option, size_wxh
+from .options import emit_summary, json_option, quiet_debug_options, size_wxh
 
 #: Defaults of --frames and --image-size in video mode (when not given).
 VIDEO_FRAMES, VIDEO_SIZE = 30, (416, 128)
@@ -93,6 +93,7 @@ _SINGLE_ONLY = ("underwater_frames", "stem_prefix")
     "OUT_DIR and compare every file byte for byte (exit 1 on any difference).",
 )
 @json_option
+@quiet_debug_options
 def synth_scene(
     out_dir,
     seed,

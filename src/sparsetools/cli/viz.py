@@ -6,7 +6,13 @@ from pathlib import Path
 
 import click
 
-from .options import image_option, max_depth_option, output_dir_option, overwrite_option
+from .options import (
+    image_option,
+    max_depth_option,
+    output_dir_option,
+    overwrite_option,
+    quiet_debug_options,
+)
 
 
 def _labels_callback(ctx, param, value):
@@ -43,6 +49,7 @@ def _labels_callback(ctx, param, value):
 )
 @click.option("--no-colorbar", is_flag=True, help="Leave out the colour bar.")
 @overwrite_option(help="Replace OUT even if it was not written by viz.")
+@quiet_debug_options
 def viz(
     depth,
     image,

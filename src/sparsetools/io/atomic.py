@@ -7,6 +7,7 @@ A reader never sees a half-written file and an interrupted run leaves no partial
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import tempfile
 from collections.abc import Iterator
@@ -54,12 +55,19 @@ def atomic_path(path: str | os.PathLike, *, overwrite: bool = True) -> Iterator[
     os.close(fd)
     tmp = Path(tmp_name)
     try:
-        yield tmp
-        if not tmp.exists() or (tmp.stat().st_size == 0 and not _allow_empty(path)):
-            raise OutputError(f"writing {path} produced no data")
-        # mkstemp creates 0600 files; give outputs the usual permissions (0666 & ~umask).
-        os.chmod(tmp, 0o666 & ~_umask())
-        os.replace(tmp, path)
+        try:
+            yield tmp
+            if not tmp.exists() or (tmp.stat().st_size == 0 and not _allow_empty(path)):
+                raise OutputError(f"writing {path} produced no data")
+            # mkstemp creates 0600 files; give outputs the usual permissions (0666 & ~umask).
+            os.chmod(tmp, 0o666 & ~_umask())
+            os.replace(tmp, path)
+        except OSError as exc:
+            if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+                raise OutputError(f"no space left on device while writing {path}") from exc
+            if exc.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
+                raise OutputError(f"cannot write {path}: {exc.strerror}") from exc
+            raise
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()

@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import stat
 from pathlib import Path
 
 import numpy as np
@@ -35,31 +36,74 @@ __all__ = [
 KITTI_IMAGE_SIZE = (1242, 375)
 
 
+#: Largest calibration file read (bytes): real ones are a few KiB.
+MAX_CALIB_BYTES = 1 << 20
+
+
+def read_calibration_text(path: str | os.PathLike) -> str:
+    """The text of a calibration file: a regular file of at most :data:`MAX_CALIB_BYTES`.
+
+    A device, a FIFO or a link to one (``/dev/zero``) would be read forever: refused.
+    """
+    path = Path(path)
+    try:
+        st = path.stat()
+    except FileNotFoundError as exc:
+        raise CalibrationError(f"{path}: no such calibration file") from exc
+    except OSError as exc:
+        raise CalibrationError(f"{path}: cannot read ({exc.strerror or exc})") from exc
+    if path.is_dir():
+        raise CalibrationError(f"{path}: not a text calibration file (a folder)")
+    if not stat.S_ISREG(st.st_mode):
+        raise CalibrationError(f"{path}: not a regular file (a device or a pipe?)")
+    if st.st_size > MAX_CALIB_BYTES:
+        raise CalibrationError(
+            f"{path}: {st.st_size} bytes, too large to be a calibration file (limit 1 MiB)"
+        )
+    try:
+        with open(path, "rb") as fh:
+            data = fh.read(MAX_CALIB_BYTES + 1)
+        return data.decode("utf-8", errors="strict")
+    except UnicodeDecodeError as exc:
+        raise CalibrationError(f"{path}: not a text calibration file") from exc
+    except OSError as exc:
+        raise CalibrationError(f"{path}: cannot read ({exc.strerror or exc})") from exc
+
+
 def read_key_value_file(path: str | os.PathLike) -> dict[str, np.ndarray]:
     """Parse ``key: v1 v2 ...`` lines (KITTI calib format) into float64 arrays.
 
     Lines whose values are not all numbers (``calib_time: 09-Jan-2012 ...``) are kept only
     if a later lookup asks for them; they are stored as ``None`` so a missing key and a
-    non-numeric key are told apart.
+    non-numeric key are told apart. A key given twice with different values is an error
+    (which one a reader would take is arbitrary); the same line twice is fine.
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8", errors="strict")
-    except FileNotFoundError as exc:
-        raise CalibrationError(f"{path}: no such calibration file") from exc
-    except (UnicodeDecodeError, IsADirectoryError) as exc:
-        raise CalibrationError(f"{path}: not a text calibration file") from exc
-    except OSError as exc:
-        raise CalibrationError(f"{path}: cannot read ({exc.strerror or exc})") from exc
+    text = read_calibration_text(path)
     out: dict[str, np.ndarray | None] = {}
-    for line in text.splitlines():
+    line_of: dict[str, int] = {}
+    for number, line in enumerate(text.splitlines(), 1):
         if ":" not in line:
             continue
         key, _, value = line.partition(":")
+        key = key.strip()
         try:
-            out[key.strip()] = np.array([float(v) for v in value.split()], dtype=np.float64)
+            parsed = np.array([float(v) for v in value.split()], dtype=np.float64)
         except ValueError:
-            out[key.strip()] = None
+            parsed = None
+        if key in out:
+            old = out[key]
+            same = (old is None and parsed is None) or (
+                old is not None and parsed is not None and np.array_equal(old, parsed)
+            )
+            if not same:
+                raise CalibrationError(
+                    f"{path}: key '{key}' is given twice with different values (lines "
+                    f"{line_of[key]} and {number})"
+                )
+            continue
+        out[key] = parsed
+        line_of[key] = number
     return out
 
 
@@ -174,10 +218,8 @@ def read_json_calib(path: str | os.PathLike, *, camera: str | int | None = None)
     """Read a JSON calibration (plain form, or the nuScenes ``cameras`` form; see module doc)."""
     path = Path(path)
     try:
-        d = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError as exc:
-        raise CalibrationError(f"{path}: no such calibration file") from exc
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        d = json.loads(read_calibration_text(path))
+    except json.JSONDecodeError as exc:
         raise CalibrationError(f"{path}: not valid JSON ({exc})") from exc
     except RecursionError as exc:
         raise CalibrationError(f"{path}: not valid JSON (nested too deeply)") from exc

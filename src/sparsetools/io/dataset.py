@@ -426,14 +426,14 @@ def read_manifest(path: str | os.PathLike) -> tuple[pa.Table, dict]:
 def _check_manifest_values(table: pa.Table, path: Path) -> None:
     """Refuse values a reader would trip on: nulls in required columns, impossible sizes,
     a Parquet reference without its row."""
-    from .image import MAX_IMAGE_PIXELS
+    from .image import max_image_pixels
 
     for f in MANIFEST_SCHEMA:
         if not f.nullable and table.column(f.name).null_count:
             raise FormatError(f"{path}: column {f.name} holds empty (null) values")
     w = table.column("width").to_numpy().astype(np.int64)
     h = table.column("height").to_numpy().astype(np.int64)
-    if w.size and ((w <= 0).any() or (h <= 0).any() or (w * h > MAX_IMAGE_PIXELS).any()):
+    if w.size and ((w <= 0).any() or (h <= 0).any() or (w * h > max_image_pixels()).any()):
         raise FormatError(f"{path}: a sample has an impossible image size (width, height)")
     part = table.column("sparse_parquet").is_valid().to_numpy(zero_copy_only=False)
     if (part & (np.maximum(w, h) > MAX_SIDE)).any():

@@ -22,6 +22,7 @@ __all__ = [
     "image_size_of",
     "imdecode_captured",
     "import_cv2",
+    "max_image_pixels",
     "read_depth_png",
     "read_image",
     "write_depth_png",
@@ -32,8 +33,31 @@ log = logging.getLogger(__name__)
 
 #: KITTI depth PNG: stored value = depth [m] * 256; 0 = no measurement.
 DEPTH_SCALE = 256.0
-#: Refuse to decode images declaring more pixels than this (decompression bombs).
-MAX_IMAGE_PIXELS = int(os.environ.get("SPARSETOOLS_MAX_IMAGE_PIXELS", 16384 * 16384 // 2))
+#: Default limit: refuse to decode images declaring more pixels than this (decompression
+#: bombs). ``SPARSETOOLS_MAX_IMAGE_PIXELS`` (a positive integer) replaces it.
+MAX_IMAGE_PIXELS = 16384 * 16384 // 2
+
+
+def max_image_pixels() -> int:
+    """The pixel limit in force: ``SPARSETOOLS_MAX_IMAGE_PIXELS`` when set, else the default.
+
+    Raises
+    ------
+    ParameterError
+        The variable is set to something other than a positive integer.
+    """
+    text = os.environ.get("SPARSETOOLS_MAX_IMAGE_PIXELS")
+    if text is None or not text.strip():
+        return MAX_IMAGE_PIXELS
+    try:
+        value = int(text.strip())
+    except ValueError:
+        value = 0
+    if value <= 0:
+        raise ParameterError(
+            f"SPARSETOOLS_MAX_IMAGE_PIXELS must be a positive integer, got {text!r}"
+        )
+    return value
 
 
 def check_pixel_count(width: int, height: int, what: str) -> None:
@@ -44,9 +68,10 @@ def check_pixel_count(width: int, height: int, what: str) -> None:
     FormatError
         ``what`` ("depth map", "<file>: declared size") names the culprit in the message.
     """
-    if int(width) * int(height) > MAX_IMAGE_PIXELS:
+    limit = max_image_pixels()
+    if int(width) * int(height) > limit:
         raise FormatError(
-            f"{what} is {width}x{height} pixels, above the limit of {MAX_IMAGE_PIXELS} "
+            f"{what} is {width}x{height} pixels, above the limit of {limit} "
             "(set SPARSETOOLS_MAX_IMAGE_PIXELS to raise it)"
         )
 

@@ -17,7 +17,7 @@ from ..errors import ParameterError
 __all__ = ["INTRINSIC_KEYS", "intrinsic_error", "mean_intrinsic_error"]
 
 #: Keys of the dictionary returned by :func:`intrinsic_error`, in table order.
-INTRINSIC_KEYS = ("delta1", "delta2", "rmse", "points", "density", "evaluated")
+INTRINSIC_KEYS = ("delta1", "delta2", "rmse", "points", "density_percent", "evaluated")
 
 
 def intrinsic_error(expanded: np.ndarray, lidar: np.ndarray, *, max_depth: float = 80.0) -> dict:
@@ -39,7 +39,7 @@ def intrinsic_error(expanded: np.ndarray, lidar: np.ndarray, *, max_depth: float
         ``delta1``, ``delta2``: fraction of evaluated pixels with ``max(r/l, l/r) < 1.25^k``;
         ``rmse``: metres (NaN when no pixel is evaluated, as are the deltas);
         ``points``: valid pixels of ``expanded`` (the paper's "# points");
-        ``density``: ``points`` in percent of all pixels;
+        ``density_percent``: ``points`` in percent of all pixels;
         ``evaluated``: pixels valid in both maps with LiDAR <= ``max_depth``.
     """
     r = np.asarray(expanded)
@@ -61,7 +61,7 @@ def intrinsic_error(expanded: np.ndarray, lidar: np.ndarray, *, max_depth: float
     points = int(np.count_nonzero(r_valid))
     out = {
         "points": points,
-        "density": 100.0 * points / r.size if r.size else 0.0,
+        "density_percent": 100.0 * points / r.size if r.size else 0.0,
         "evaluated": int(np.count_nonzero(both)),
     }
     if out["evaluated"] == 0:

@@ -377,9 +377,9 @@ def _frame_calibration(calib_path, image, image_size, camera=2):
 
     calib = load_calibration(calib_path, camera=camera)
     if image_size is not None:
-        calib = calib.with_size(*image_size)
+        calib = calib.for_size(*image_size, given_by="--image-size")
     elif image is not None:
-        calib = calib.with_size(*image_size_of(image))
+        calib = calib.for_size(*image_size_of(image), given_by=f"image {image}")
     elif calib.width is None or calib.height is None:
         raise ParameterError(
             f"image size missing: give --image-size WxH or --image IMG "

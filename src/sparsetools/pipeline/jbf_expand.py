@@ -507,7 +507,7 @@ def format_intrinsic_table(table: dict, *, max_depth: float = 80.0) -> str:
     def row(frame: str, name: str, e: dict) -> str:
         return (
             f"{frame:<14} {name:<14} {e['delta1']:>7.3f} {e['delta2']:>7.3f} {e['rmse']:>8.3f} "
-            f"{e['points']:>9.0f} {e['density']:>9.3f} {e['evaluated']:>9.0f}"
+            f"{e['points']:>9.0f} {e['density_percent']:>9.3f} {e['evaluated']:>9.0f}"
         )
 
     for frame, rows in table["frames"].items():

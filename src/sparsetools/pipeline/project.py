@@ -147,11 +147,11 @@ def resolve_calibration(inp: ProjectInput, settings: ProjectSettings) -> Calibra
             raise ParameterError("no calibration: give --calib")
         calib = load_calibration(inp.calib_path, camera=settings.camera)
     if settings.image_size is not None:
-        calib = calib.with_size(*settings.image_size)
+        calib = calib.for_size(*settings.image_size, given_by="--image-size")
     elif calib.width is not None and calib.height is not None and inp.calibration is not None:
         pass  # a size the source knows (nuScenes) wins over reading the image header
     elif inp.image is not None:
-        calib = calib.with_size(*image_size_of(inp.image))
+        calib = calib.for_size(*image_size_of(inp.image), given_by=f"image {inp.image}")
     elif calib.width is None or calib.height is None:
         raise ParameterError(
             "image size missing: give --image-size WxH or --image IMG "

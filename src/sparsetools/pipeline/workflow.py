@@ -23,21 +23,19 @@ from __future__ import annotations
 import json
 import logging
 import os
-import re
 import shlex
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..errors import FormatError, ParameterError
+from ..errors import ParameterError
 from ..io.atomic import atomic_path
+from .workflow_config import parse_config
 
 __all__ = ["Step", "StepResult", "Workflow", "load_workflow", "run_workflow"]
 
 log = logging.getLogger(__name__)
-
-_VAR = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)\}")
 
 
 @dataclass
@@ -66,79 +64,17 @@ class StepResult:
     seconds: float
 
 
-def _substitute(value: str, variables: dict[str, str], where: str) -> str:
-    def repl(m):
-        key = m.group(1)
-        if key not in variables:
-            raise ParameterError(f"{where}: unknown variable ${{{key}}}")
-        return variables[key]
-
-    # Variables may refer to other variables: a few passes settle them.
-    for _ in range(5):
-        new = _VAR.sub(repl, value)
-        if new == value:
-            break
-        value = new
-    return value
-
-
 def load_workflow(
     path: str | os.PathLike, *, out_dir: str | os.PathLike, overrides: dict | None = None
 ) -> Workflow:
-    """Read a YAML/TOML workflow config, substituting ``${vars}`` (``out`` = ``out_dir``)."""
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError as exc:
-        raise FormatError(f"{path}: no such pipeline config") from exc
-    except (OSError, UnicodeDecodeError) as exc:
-        raise FormatError(f"{path}: cannot read the pipeline config ({exc})") from exc
-    try:
-        if path.suffix.lower() == ".toml":
-            import tomllib
-
-            cfg = tomllib.loads(text)
-        elif path.suffix.lower() in (".yaml", ".yml"):
-            import yaml
-
-            cfg = yaml.safe_load(text)
-        else:
-            raise FormatError(f"{path}: pipeline config must be .yaml, .yml or .toml")
-    except FormatError:
-        raise
-    except Exception as exc:  # yaml.YAMLError / tomllib.TOMLDecodeError carry line numbers
-        raise FormatError(f"{path}: invalid config ({str(exc).splitlines()[0]})") from exc
-    if not isinstance(cfg, dict) or not isinstance(cfg.get("steps"), list) or not cfg["steps"]:
-        raise FormatError(f"{path}: config needs a non-empty 'steps' list")
-    variables = {str(k): str(v) for k, v in (cfg.get("vars") or {}).items()}
-    variables.update({str(k): str(v) for k, v in (overrides or {}).items()})
-    variables["out"] = str(out_dir)
-    variables.setdefault("config_dir", str(path.parent))
-    steps = []
-    for i, raw in enumerate(cfg["steps"]):
-        where = f"{path}: step {i + 1}"
-        if not isinstance(raw, dict) or "run" not in raw:
-            raise FormatError(f"{where}: each step needs a 'run' command line")
-        run = raw["run"]
-        run = shlex.split(run) if isinstance(run, str) else [str(a) for a in run]
-        run = [_substitute(a, variables, where) for a in run]
-        if run and run[0] == "sparsetools":
-            run = run[1:]
-        images = [_substitute(str(im), variables, where) for im in raw.get("images", [])]
-        steps.append(
-            Step(
-                name=str(raw.get("name", run[0] if run else f"step {i + 1}")),
-                run=run,
-                images=images,
-                allow_failure=bool(raw.get("allow_failure", False)),
-                note=_substitute(str(raw.get("note", "")), variables, where),
-            )
-        )
+    """Read a YAML/TOML workflow config (checked by :mod:`.workflow_config`), substituting
+    ``${vars}`` (``out`` = ``out_dir``)."""
+    cfg = parse_config(path, out_dir=out_dir, overrides=overrides)
     return Workflow(
-        name=str(cfg.get("name", path.stem)),
-        steps=steps,
+        name=cfg["name"],
+        steps=[Step(**s) for s in cfg["steps"]],
         source=str(path),
-        intro=_substitute(str(cfg.get("intro", "")), variables, str(path)),
+        intro=cfg["intro"],
     )
 
 
@@ -193,8 +129,9 @@ def run_workflow(
     rewrites the report. With ``only``, just those steps run and the report keeps the other
     steps' sections from the previous run (``OUT/steps.json``).
     """
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    from .core import check_output_dir
+
+    out = check_output_dir(out_dir, [])
     names = [s.name for s in workflow.steps]
     if only:
         unknown = [n for n in only if n not in names]

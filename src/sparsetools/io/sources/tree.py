@@ -136,6 +136,8 @@ def index_tree(
         The path does not exist, holds no such file, or two files are one frame.
     """
     root = Path(path)
+    if root.exists() and not root.is_file() and not root.is_dir():
+        raise FormatError(f"{option}: {root}: not a regular file (a device or a pipe?)")
     if root.is_file():
         if not _suffix_ok(root.name, suffixes):
             raise FormatError(f"{option}: {root} is not a {'/'.join(suffixes)} file")
