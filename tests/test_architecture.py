@@ -31,6 +31,7 @@ DISTINCT_MEANINGS = {
     "--workers",
     "--sensor",
     "--confidence",  # jbf-expand: a flag (write maps); dataset build: a folder of maps
+    "--method",  # jbf-expand: jbf | height-extend; densify: ip-basic | nearest | linear
 }
 
 

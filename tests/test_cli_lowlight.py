@@ -168,6 +168,70 @@ def test_lowlight_bad_input(scene, tmp_path):
     assert not list(out.glob("*.png"))
 
 
+def _eld_json() -> dict:
+    """The shipped ELD tables, read as plain JSON (independently of sparsetools.ops.noise)."""
+    from importlib.resources import files
+
+    doc = json.loads((files("sparsetools") / "data" / "eld_cameras.json").read_text("utf-8"))
+    return doc["cameras"]
+
+
+def test_every_eld_camera_is_offered_and_color_bias_reaches_the_manifest(scene, tmp_path):
+    import pyarrow.parquet as pq
+
+    from sparsetools.ops.lowlight import LowLightRecord, lowlight
+
+    tables = _eld_json()
+    r = run("lowlight-synth", "--help")
+    assert all(name in r.output for name in tables) and "random" in r.output
+    out = tmp_path / "n"
+    r = run("lowlight-synth", scene / "image_2", "-o", out, "--camera", "CanonEOS5D4",
+            "--color-bias", "--no-flare", "--seed", "2")  # fmt: skip
+    assert r.exit_code == 0, r.output
+    table = pq.read_table(out / "manifest.parquet")
+    import pyarrow as pa
+
+    assert pa.types.is_list(table.schema.field("color_bias").type)
+    assert table.schema.field("color_bias").type.value_type == pa.float64()
+    assert table.schema.field("noise_table_row").type == pa.int32()
+    entry = tables["CanonEOS5D4"]
+    rows = table.to_pylist()
+    for row in rows:
+        k = row["noise_table_row"]
+        assert 0 <= k < len(entry["G_shape"]) and row["camera"] == "CanonEOS5D4"
+        assert row["tukey_lambda"] == entry["G_shape"][k]
+        r_, g1, b, g2 = entry["color_bias"][k]
+        assert row["color_bias"] == pytest.approx([r_, (g1 + g2) / 2, b], rel=1e-12)
+        rec = LowLightRecord.from_json(row["record_json"])
+        # Nothing the record's summary holds is dropped from the manifest.
+        assert set(rec.summary()) <= set(table.column_names)
+        assert {k: row[k] for k in rec.summary()} == rec.summary()
+        night, _ = lowlight(read_image(row["source"]), record=rec)
+        np.testing.assert_array_equal(night, read_image(out / row["output"]))
+    assert len({row["noise_table_row"] for row in rows}) > 1 or len(rows) < 3
+    # Without --color-bias the same draws carry no offset (and are another run's settings).
+    plain = tmp_path / "p"
+    assert run("lowlight-synth", scene / "image_2", "-o", plain, "--camera", "CanonEOS5D4",
+               "--no-flare", "--seed", "2").exit_code == 0  # fmt: skip
+    for a, b in zip(rows, pq.read_table(plain / "manifest.parquet").to_pylist(), strict=True):
+        assert b["color_bias"] == [0.0, 0.0, 0.0] and b["noise_table_row"] == a["noise_table_row"]
+    line = _one_error_line(
+        run(
+            "lowlight-synth",
+            scene / "image_2",
+            "-o",
+            plain,
+            "--camera",
+            "CanonEOS5D4",
+            "--no-flare",
+            "--seed",
+            "2",
+            "--color-bias",
+        )
+    )
+    assert "made with --color-bias off, not on" in line
+
+
 def test_grey_input_is_converted(tmp_path):
     import cv2
 
@@ -206,6 +270,71 @@ def test_equalize_uses_one_lut_for_all_frames(night, tmp_path):
     assert run("equalize", src, "-o", out, "--overwrite").exit_code == 0
     first = sorted(src.glob("*.png"))[0]
     assert json.loads((out / "mcie_lut.json").read_text())["reference"] == str(first)
+
+
+def rnw_lut_reference(image: np.ndarray, clip: float) -> np.ndarray:
+    """RNW's released MCIE arithmetic as issue 17 describes it, in Python integers: the clip
+    limit truncated to an integer, the excess spread as round(excess / 256) whole pixels per
+    bin, the table values truncated to uint8."""
+    n = image.shape[0] * image.shape[1]
+    limit = int(clip * n)
+    lut = np.zeros((256, 3), np.uint8)
+    for c in range(3):
+        hist = [0] * 256
+        for level, count in zip(*np.unique(image[:, :, c], return_counts=True), strict=True):
+            hist[int(level)] = int(count)
+        excess = sum(max(h - limit, 0) for h in hist)
+        hist = [min(h, limit) + round(excess / 256) for h in hist]
+        cdf, total = [], 0
+        for h in hist:
+            total += h
+            cdf.append(total)
+        lo = next(v for v in cdf if v > 0)
+        for b in range(256):
+            lut[b, c] = max(cdf[b] - lo, 0) * 255 // (cdf[-1] - lo) if cdf[-1] > lo else b
+    return lut
+
+
+def _check_rnw_equalize(images: list[Path], out: Path, clip: float) -> None:
+    ref = rnw_lut_reference(read_image(images[0]), clip)
+    doc = json.loads((out / "mcie_lut.json").read_text())
+    assert doc["rounding"] == "rnw" and doc["clip"] == clip
+    assert doc["lut"] == [ref[:, c].tolist() for c in range(3)]
+    for f in images:
+        img = read_image(f)
+        expected = np.stack([ref[img[:, :, c], c] for c in range(3)], axis=2)
+        np.testing.assert_array_equal(read_image(out / f.name), expected)
+
+
+def test_equalize_rnw_rounding_equals_the_description(night, tmp_path):
+    src, _ = night
+    frames = sorted(src.glob("*.png"))
+    out = tmp_path / "rnw"
+    r = run("equalize", src, "-o", out, "--rounding", "rnw", "--json")
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.stdout)["rounding"] == "rnw"
+    _check_rnw_equalize(frames, out, 0.004)
+    # The default is today's rounding; a rerun with the other one is refused, naming it.
+    line = _one_error_line(run("equalize", src, "-o", out))
+    assert "equalised frames made with --rounding rnw, not nearest: use --overwrite" in line
+    near = tmp_path / "near"
+    assert run("equalize", src, "-o", near).exit_code == 0
+    doc = json.loads((near / "mcie_lut.json").read_text())
+    rnw = json.loads((out / "mcie_lut.json").read_text())
+    assert doc["rounding"] == "nearest"
+    diff = np.asarray(doc["lut"], int) - np.asarray(rnw["lut"], int)
+    assert set(np.unique(diff)) <= {0, 1} and diff.any()  # RNW's is at most one level lower
+
+
+@pytest.mark.real
+def test_equalize_rnw_rounding_on_real_kitti_images(kitti_object, tmp_path):
+    frames = sorted((kitti_object / "image_2").glob("*.png"))
+    out = tmp_path / "rnw"
+    r = run("equalize", kitti_object / "image_2", "-o", out, "--rounding", "rnw", "--clip",
+            "0.008")  # fmt: skip
+    assert r.exit_code == 0, r.output
+    assert len(frames) >= 3
+    _check_rnw_equalize(frames, out, 0.008)
 
 
 def test_equalize_bad_input(scene, tmp_path):

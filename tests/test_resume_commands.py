@@ -172,6 +172,57 @@ CASES = [
         "made with --source lidar, not radar",
         lambda d: _change_depth(d / "lidar" / "000001.png"),
     ),
+    Case(
+        "defocus-synth",
+        lambda d, o: [
+            "defocus-synth",
+            d / "image_2",
+            "--depth",
+            d / "depth_gt",
+            "--missing-depth",
+            "far",
+            "-o",
+            o,
+        ],
+        ("--focus-distance", "2"),
+        "made with --focus-distance 0.7,0.7, not 2,2",
+        lambda d: _change_depth(d / "depth_gt" / "000002.png"),
+    ),
+    Case(
+        "dark-channel",
+        lambda d, o: ["dark-channel", d / "image_2", "-o", o],
+        ("--window", "7"),
+        "made with --window 15, not 7",
+        lambda d: _change_image(d / "image_2" / "000000.png"),
+    ),
+    Case(
+        "densify",
+        lambda d, o: ["densify", d / "lidar", "-o", o],
+        ("--variant", "bilateral"),
+        "made with --variant gaussian, not bilateral",
+        lambda d: _change_depth(d / "lidar" / "000002.png"),
+    ),
+    Case(
+        "accumulate",
+        lambda d, o: [
+            "accumulate",
+            d / "velodyne",
+            "--calib",
+            d / "calib",
+            "--image-size",
+            "1242x375",
+            "--icp",
+            "--window",
+            "1",
+            "-o",
+            o,
+        ],
+        ("--window", "2"),
+        "made with --window 1, not 2",
+        # frames 000000 and 000001 hold scan 000000 in their window (000002's is 1..2)
+        lambda d: _change_cloud(d / "velodyne" / "000000.bin"),
+        recomputed=2,
+    ),
 ]
 
 

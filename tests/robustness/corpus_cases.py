@@ -266,7 +266,7 @@ JSON_CALIBS = {
         "non-finite",
     ),
     "json-calib-bad-width": (json.dumps(json_calib(width="wide")), "width"),
-    "json-calib-utf16": (json.dumps(json_calib()).encode("utf-16"), "not valid JSON"),
+    "json-calib-utf16": (json.dumps(json_calib()).encode("utf-16"), "not a text calibration file"),
 }
 
 
@@ -1308,6 +1308,356 @@ def _(tmp):
 def _(tmp):
     c = write(IN(tmp) / "c.yaml", "steps:\n  - name: a\n    run: stats ${nothing}\n")
     return Setup(["pipeline", c, "-o", OUT(tmp)])
+
+
+# ======================================================================================
+# defocus-synth
+# ======================================================================================
+
+
+def _dense_depth(tmp) -> Path:
+    return write(IN(tmp) / "dense" / "000000.png", depth_png_bytes(depth_map(density=1.0)))
+
+
+def _defocus(tmp, *extra, depth=None):
+    f = good_frame(IN(tmp))
+    d = depth if depth is not None else _dense_depth(tmp)
+    return ["defocus-synth", f["image"], "--depth", d, *extra, "-o", OUT(tmp)]
+
+
+def _defocus_image_case(name, fname, data, match):
+    @case(f"defocus-synth/{name}", match=match)
+    def build(tmp):
+        bad = write(IN(tmp) / "img" / fname, data)
+        return Setup(["defocus-synth", bad, "--depth", _dense_depth(tmp), "-o", OUT(tmp)])
+
+
+for _name, (_fname, _data, _match) in BAD_IMAGES.items():
+    _defocus_image_case(_name, _fname, _data, _match)
+
+
+def _defocus_depth_case(name, data, match):
+    @case(f"defocus-synth/{name}", match=match)
+    def build(tmp):
+        return Setup(_defocus(tmp, depth=write(IN(tmp) / "dep" / "000000.png", data)))
+
+
+for _name, (_data, _match) in BAD_DEPTHS.items():
+    _defocus_depth_case(_name, _data, _match)
+
+
+@case("defocus-synth/depth-size-mismatch", match="depth map is 32x16")
+def _(tmp):
+    d = write(IN(tmp) / "dep" / "000000.png", depth_png_bytes(depth_map(w=32, h=16, density=1)))
+    return Setup(_defocus(tmp, depth=d))
+
+
+@case("defocus-synth/depth-with-holes", match="--missing-depth far")
+def _(tmp):
+    return Setup(_defocus(tmp, depth=good_frame(IN(tmp))["depth"]))  # 30 % valid
+
+
+@case("defocus-synth/depth-with-holes-rendered-far", expect="ok")
+def _(tmp):
+    def check(tmp, result):
+        for rel in ("000000.png", "radius/000000.npy", "records/000000.json", "manifest.parquet"):
+            assert (OUT(tmp) / rel).is_file(), rel
+
+    depth = good_frame(IN(tmp))["depth"]
+    return Setup(_defocus(tmp, "--missing-depth", "far", depth=depth), check=check)
+
+
+@case("defocus-synth/depth-npy-garbage", match="not a readable .npy")
+def _(tmp):
+    return Setup(_defocus(tmp, depth=write(IN(tmp) / "dep" / "000000.npy", b"\x93NUMPY" * 9)))
+
+
+@case("defocus-synth/depth-npy-huge-header", match="000000.npy")
+def _(tmp):
+    d = write(IN(tmp) / "dep" / "000000.npy", npy_huge_header(rows=10**6, cols=10**6))
+    return Setup(_defocus(tmp, depth=d))
+
+
+@case("defocus-synth/depth-folder-missing-frame", match="no depth map")
+def _(tmp):
+    write(IN(tmp) / "dep" / "999999.png", depth_png_bytes(depth_map(density=1.0)))
+    return Setup(_defocus(tmp, depth=IN(tmp) / "dep"))
+
+
+@case("defocus-synth/calib-non-numeric", match="non-numeric")
+def _(tmp):
+    c = write(IN(tmp) / "cal" / "000000.txt", kitti_calib_text().replace("P2: ", "P2: x ", 1))
+    return Setup(_defocus(tmp, "--calib", c))
+
+
+@case("defocus-synth/focus-inside-the-lens", match="must exceed the focal length")
+def _(tmp):
+    return Setup(_defocus(tmp, "--focal-length-mm", "50", "--focus-distance", "0.02"))
+
+
+@case("defocus-synth/corrupt-record-sidecar-in-out", match="has no record of what made it")
+def _(tmp):
+    write(OUT(tmp) / "records" / "000000.json", b'{"record": ')
+    return Setup(_defocus(tmp))
+
+
+@case("defocus-synth/unknown-sensor-preset", expect="usage", match="nope")
+def _(tmp):
+    return Setup(_defocus(tmp, "--sensor", "nope"))
+
+
+@case("defocus-synth/calib-and-focal-length", expect="usage", match="not both")
+def _(tmp):
+    return Setup(_defocus(tmp, "--calib", good_frame(IN(tmp))["calib"], "--focal-length-mm", "4"))
+
+
+@case("defocus-synth/focus-range-inverted", expect="usage", match="inverted")
+def _(tmp):
+    return Setup(_defocus(tmp, "--focus-distance", "9,2"))
+
+
+_out_cases(
+    "defocus-synth",
+    lambda tmp, out: [
+        "defocus-synth",
+        good_frame(IN(tmp))["image"].parent,
+        "--depth",
+        _dense_depth(tmp).parent,
+        "-o",
+        out if out is not None else IN(tmp) / "image_2" / "defocus",
+    ],
+)
+
+
+# ======================================================================================
+# dark-channel
+# ======================================================================================
+
+for _name, (_fname, _data, _match) in BAD_IMAGES.items():
+    _image_case("dark-channel", _name, _fname, _data, _match)
+
+
+@case("dark-channel/window-even", expect="usage", match="odd")
+def _(tmp):
+    return Setup(["dark-channel", good_frame(IN(tmp))["image"], "--window", "4", "-o", OUT(tmp)])
+
+
+@case("dark-channel/mask-threshold-negative", expect="usage", match=">= 0")
+def _(tmp):
+    f = good_frame(IN(tmp))
+    return Setup(["dark-channel", f["image"], "--mask-threshold", "-0.1", "-o", OUT(tmp)])
+
+
+@case("dark-channel/foreign-file-in-out", match="has no record of what made it")
+def _(tmp):
+    write(OUT(tmp) / "mask" / "000000.png", png_bytes(rgb_image()))
+    return Setup(["dark-channel", good_frame(IN(tmp))["image"], "-o", OUT(tmp)])
+
+
+@case("dark-channel/grey-image-is-read-as-rgb", expect="ok")
+def _(tmp):
+    img = write(IN(tmp) / "img" / "000000.png", png_bytes(np.full((H, W), 90, np.uint8)))
+
+    def check(tmp, result):
+        import cv2
+
+        dark = cv2.imread(str(OUT(tmp) / "dark" / "000000.png"), cv2.IMREAD_UNCHANGED)
+        assert dark.shape == (H, W) and (dark == 90).all()
+
+    return Setup(["dark-channel", img, "-o", OUT(tmp)], check=check)
+
+
+_out_cases(
+    "dark-channel",
+    lambda tmp, out: [
+        "dark-channel",
+        good_frame(IN(tmp))["image"].parent,
+        "-o",
+        out if out is not None else IN(tmp) / "image_2" / "dc",
+    ],
+)
+
+
+# ======================================================================================
+# densify
+# ======================================================================================
+
+
+def _densify(tmp, *extra, sparse=None):
+    f = good_frame(IN(tmp))
+    return ["densify", sparse or f["depth"].parent, *extra, "-o", OUT(tmp)]
+
+
+def _densify_depth_case(name, fname, data, match):
+    @case(f"densify/{name}", match=match)
+    def build(tmp):
+        good_frame(IN(tmp))
+        return Setup(_densify(tmp, sparse=write(IN(tmp) / "sp" / fname, data)))
+
+
+for _name, (_data, _match) in BAD_DEPTHS.items():
+    _densify_depth_case(_name, "000000.png", _data, _match)
+_densify_depth_case("npy-garbage", "000000.npy", b"\x93NUMPY garbage" * 10, ".npy")
+_densify_depth_case("npy-3d", "000000.npy", npy_bytes(np.zeros((2, 3, 4), np.float32)), "(H, W)")
+
+
+@case("densify/max-depth-too-small", match="--max-depth: must be > 0.2 m")
+def _(tmp):
+    return Setup(_densify(tmp, "--max-depth", "0.1"))
+
+
+@case("densify/unknown-method", expect="usage", match="--method")
+def _(tmp):
+    return Setup(_densify(tmp, "--method", "kriging"))
+
+
+@case("densify/folder-without-depth-maps", match="no *.png/*.npy files in")
+def _(tmp):
+    write(IN(tmp) / "sp" / "notes.txt", "x")
+    return Setup(_densify(tmp, sparse=IN(tmp) / "sp"))
+
+
+@case("densify/empty-map-gives-zeros", expect="ok")
+def _(tmp):
+    d = write(IN(tmp) / "sp" / "000000.png", depth_png_bytes(np.zeros((H, W), np.float32)))
+
+    def check(tmp, result):
+        import cv2
+
+        dense = cv2.imread(str(OUT(tmp) / "000000.png"), cv2.IMREAD_UNCHANGED)
+        mask = cv2.imread(str(OUT(tmp) / "mask" / "000000.png"), cv2.IMREAD_UNCHANGED)
+        assert dense.shape == (H, W) and not dense.any() and not mask.any()
+
+    return Setup(_densify(tmp, sparse=d), check=check)
+
+
+_out_cases(
+    "densify",
+    lambda tmp, out: [
+        "densify",
+        good_frame(IN(tmp))["depth"].parent,
+        "-o",
+        out if out is not None else IN(tmp) / "depth" / "dense",
+    ],
+)
+
+
+# ======================================================================================
+# accumulate
+# ======================================================================================
+
+
+def _identity_poses(n: int) -> str:
+    return "1 0 0 0 0 1 0 0 0 0 1 0\n" * n
+
+
+def _accumulate(tmp, *extra, poses=None, calib=True, out=None):
+    """Two frames (000000, 000001) of good_frame clouds, identity poses, window 1."""
+    good_frame(IN(tmp))
+    good_frame(IN(tmp), "000001", seed=1)
+    p = poses if poses is not None else write(IN(tmp) / "poses_velodyne.txt", _identity_poses(2))
+    args = ["accumulate", IN(tmp) / "velodyne", "--image-size", f"{W}x{H}", "--window", "1"]
+    if calib:
+        args += ["--calib", IN(tmp) / "calib"]
+    if p is not False:
+        args += ["--poses", p]
+    return [*args, *extra, "-o", out if out is not None else OUT(tmp)]
+
+
+@case("accumulate/no-poses", match="no pose for frame 000000")
+def _(tmp):
+    return Setup(_accumulate(tmp, poses=False))
+
+
+POSE_FILES = {
+    "poses-non-numeric": ("1 0 0 0 0 1 0 0 0 0 1 x\n" * 2, "'x' is not a number"),
+    "poses-wrong-count": ("1 0 0 0 0 1 0 0 0 0 1\n" * 2, "11 values"),
+    "poses-not-rigid": ("2 0 0 0 0 1 0 0 0 0 1 0\n" * 2, "not a rigid transform"),
+    "poses-nan": ("1 0 0 nan 0 1 0 0 0 0 1 0\n" * 2, "non-finite"),
+    "poses-too-short": (_identity_poses(1), "frame 000001 needs line 2"),
+    "poses-binary": ("\udcff", "not a text poses file"),
+}
+
+
+def _pose_file_case(name, text, match):
+    @case(f"accumulate/{name}", match=match)
+    def build(tmp):
+        data = b"\xff\xfe\x00garbage" if text == "\udcff" else text
+        return Setup(_accumulate(tmp, poses=write(IN(tmp) / "poses_velodyne.txt", data)))
+
+
+for _name, (_text, _match) in POSE_FILES.items():
+    _pose_file_case(_name, _text, _match)
+
+
+@case("accumulate/truncated-cloud-in-a-window", match="not a multiple of 16")
+def _(tmp):
+    args = _accumulate(tmp)
+    write(IN(tmp) / "velodyne" / "000001.bin", cloud().tobytes()[: 16 * 100 + 7])
+    return Setup(args)
+
+
+@case("accumulate/calib-missing-key", match="missing key 'Tr_velo_to_cam'")
+def _(tmp):
+    args = _accumulate(tmp)
+    write(IN(tmp) / "calib" / "000000.txt", kitti_calib_text(drop="Tr_velo_to_cam"))
+    return Setup(args)
+
+
+@case("accumulate/no-calibration", match="--calib: no calibration for frame 000000")
+def _(tmp):
+    return Setup(_accumulate(tmp, calib=False))
+
+
+@case("accumulate/mask-size-mismatch", match="mask is 32x16")
+def _(tmp):
+    write(IN(tmp) / "mask" / "000000.png", png_bytes(np.zeros((16, 32), np.uint8)))
+    write(IN(tmp) / "mask" / "000001.png", png_bytes(np.zeros((16, 32), np.uint8)))
+    return Setup(_accumulate(tmp, "--mask", IN(tmp) / "mask"))
+
+
+@case("accumulate/mask-corrupt", match="cannot decode")
+def _(tmp):
+    write(IN(tmp) / "mask" / "000000.png", corrupt_png())
+    write(IN(tmp) / "mask" / "000001.png", png_bytes(np.zeros((H, W), np.uint8)))
+    return Setup(_accumulate(tmp, "--mask", IN(tmp) / "mask"))
+
+
+@case("accumulate/mask-missing-a-frame", match="no mask for frame 000001")
+def _(tmp):
+    write(IN(tmp) / "mask" / "000000.png", png_bytes(np.zeros((H, W), np.uint8)))
+    return Setup(_accumulate(tmp, "--mask", IN(tmp) / "mask"))
+
+
+@case("accumulate/icp-on-a-nearly-empty-scan", match="ICP needs at least 10")
+def _(tmp):
+    args = _accumulate(tmp, poses=False)
+    write(IN(tmp) / "velodyne" / "000001.bin", cloud(5).tobytes())
+    return Setup([*args[:-2], "--icp", *args[-2:]])
+
+
+@case("accumulate/poses-and-icp", expect="usage", match="give --poses or --icp, not both")
+def _(tmp):
+    args = _accumulate(tmp)
+    return Setup([*args[:-2], "--icp", *args[-2:]])
+
+
+@case("accumulate/window-beyond-the-sequence-is-clipped", expect="ok")
+def _(tmp):
+    def check(tmp, result):
+        assert "every window is clipped to frames 000000..000001" in result.stderr
+        assert (OUT(tmp) / "000000.png").is_file() and (OUT(tmp) / "000001.png").is_file()
+
+    args = _accumulate(tmp)
+    i = args.index("--window")
+    args[i + 1] = "9"
+    return Setup(args, check=check)
+
+
+_out_cases(
+    "accumulate",
+    lambda tmp, out: _accumulate(tmp, out=out if out is not None else IN(tmp) / "velodyne" / "acc"),
+)
 
 
 if sys.platform != "linux":  # pragma: no cover - /sys is Linux-only

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import click
 
+from ..ops.enhance import ROUNDINGS
 from .options import batch_options, emit_summary, output_dir_option
 
 
@@ -35,12 +36,22 @@ def _clip_limit(ctx, param, value):
     help="Frame whose histogram makes the table: a path or the name of an input "
     "[default: the first image].",
 )
+@click.option(
+    "--rounding",
+    type=click.Choice(ROUNDINGS),
+    default="nearest",
+    show_default=True,
+    help="Table arithmetic: real-valued and rounded to nearest, or rnw: RNW's released "
+    "integer version (limit and spread excess truncated to whole pixels, values truncated; "
+    "at most one level lower).",
+)
 @batch_options
 def equalize(
     images,
     out_dir,
     clip,
     reference,
+    rounding,
     batch,
 ):
     """Equalise images with ONE clipped-histogram table per channel (RNW's MCIE).
@@ -48,14 +59,18 @@ def equalize(
     The table comes from the reference frame (256 bins, clip limit = CLIP x pixel count,
     overflow spread uniformly) and maps every frame with cv2.LUT, so the same grey level
     becomes the same output level in all frames (photometric losses stay valid). Writes
-    OUT/<sequence>/<frame>.png and the table as OUT/mcie_lut.json.
+    OUT/<sequence>/<frame>.png and the table as OUT/mcie_lut.json (reference, clip,
+    rounding, table).
 
     \b
     Examples:
       sparsetools equalize out/night -o out/night_mcie
       sparsetools equalize seq/ -o out/eq --reference 000010 --clip 0.008
+      sparsetools equalize out/night -o out/night_rnw --rounding rnw
     """
     from ..pipeline.equalize import run_equalize
 
-    summary = run_equalize(images, out_dir, clip=clip, reference=reference, batch=batch)
+    summary = run_equalize(
+        images, out_dir, clip=clip, reference=reference, rounding=rounding, batch=batch
+    )
     emit_summary(summary, as_json=batch.as_json, title=f"equalised frames written to {out_dir}")

@@ -1,8 +1,11 @@
-"""``sparsetools lowlight-synth``: day images to synthetic night images (flares + sensor noise)."""
+"""``sparsetools lowlight-synth``: day images to synthetic night images (flares + sensor noise).
+
+The options of the ELD sensor noise and of the depth input (``--depth``, ``--noise``,
+``--camera``, ``--ratio``, ``--color-bias``) are shared with ``defocus-synth`` (cli/options.py).
+"""
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import click
@@ -10,30 +13,21 @@ import click
 from .options import (
     batch_options,
     calib_option,
+    color_bias_option,
+    depth_option,
     emit_summary,
+    noise_camera_option,
+    noise_cameras,
+    noise_option,
     output_dir_option,
     positive,
+    positive_pair,
+    ratio_option,
     seed_option,
 )
 
-CAMERAS = ("SonyA7S2", "NikonD850", "CanonEOS70D", "random")
-
-
-def _positive_pair(ctx, param, value):
-    """``A,B`` with 0 < A <= B."""
-    if value is None:
-        return None
-    try:
-        a, b = (float(v) for v in value.split(","))
-    except ValueError:
-        raise click.BadParameter(f"expected two numbers as A,B, got {value!r}") from None
-    if not (math.isfinite(a) and math.isfinite(b)):
-        raise click.BadParameter(f"expected finite numbers, got {value!r}")
-    if a > b:
-        raise click.BadParameter(f"range is inverted ({a} > {b})")
-    if a <= 0:
-        raise click.BadParameter(f"values must be > 0, got {value!r}")
-    return a, b
+#: ELD noise tables shipped with the package, and "random" (one per image).
+CAMERAS = noise_cameras()
 
 
 def _count_range(ctx, param, value):
@@ -59,11 +53,9 @@ def _count_range(ctx, param, value):
 @click.command("lowlight-synth")
 @click.argument("images", nargs=-1, required=True, type=click.Path(exists=True, path_type=Path))
 @output_dir_option
-@click.option(
-    "--depth",
-    type=click.Path(exists=True, path_type=Path),
+@depth_option(
     help="Depth PNG (KITTI uint16) for one image, or a folder matched by frame: flare "
-    "sources are placed only at pixels with depth in (0, --flare-max-depth] m.",
+    "sources are placed only at pixels with depth in (0, --flare-max-depth] m."
 )
 @calib_option(
     help="Calibration (or folder of per-frame .txt/.json) giving K, to record each "
@@ -78,23 +70,12 @@ def _count_range(ctx, param, value):
     help="Night versions per image, 1-1000 (OUT/<frame>_v<k>.png when > 1).",
 )
 @click.option("--flare/--no-flare", default=True, show_default=True, help="Add lens flares.")
-@click.option(
-    "--noise",
-    type=click.Choice(["eld", "gaussian", "none"]),
-    default="eld",
-    show_default=True,
-    help="Sensor noise: ELD (Tukey-lambda read noise), Gaussian read noise, or none.",
-)
-@click.option(
-    "--camera",
-    type=click.Choice(CAMERAS),
-    default="SonyA7S2",
-    show_default=True,
-    help="ELD noise profile (random: one per image).",
-)
+@noise_option(default="eld")
+@noise_camera_option
+@color_bias_option
 @click.option(
     "--brightness",
-    callback=_positive_pair,
+    callback=positive_pair,
     default="0.4,1.0",
     show_default=True,
     metavar="MIN,MAX",
@@ -102,7 +83,7 @@ def _count_range(ctx, param, value):
 )
 @click.option(
     "--gamma",
-    callback=_positive_pair,
+    callback=positive_pair,
     default="1.8,2.2",
     show_default=True,
     metavar="MIN,MAX",
@@ -118,7 +99,7 @@ def _count_range(ctx, param, value):
 )
 @click.option(
     "--flare-scale",
-    callback=_positive_pair,
+    callback=positive_pair,
     default="0.2,1.0",
     show_default=True,
     metavar="MIN,MAX",
@@ -126,7 +107,7 @@ def _count_range(ctx, param, value):
 )
 @click.option(
     "--flare-amount",
-    callback=_positive_pair,
+    callback=positive_pair,
     default="0.3,3.0",
     show_default=True,
     metavar="MIN,MAX",
@@ -140,14 +121,7 @@ def _count_range(ctx, param, value):
     callback=positive,
     help="Farthest light source, metres (with --depth).",
 )
-@click.option(
-    "--ratio",
-    callback=_positive_pair,
-    default="2,32",
-    show_default=True,
-    metavar="MIN,MAX",
-    help="Exposure ratio ~ logU: higher = darker raw signal, more visible noise.",
-)
+@ratio_option(default="2,32")
 @click.option(
     "--bank-seed",
     type=int,
@@ -166,6 +140,7 @@ def lowlight_synth(
     flare,
     noise,
     camera,
+    color_bias,
     brightness,
     gamma,
     flare_count,
@@ -189,6 +164,7 @@ def lowlight_synth(
       sparsetools lowlight-synth out/scene/image_2 --depth out/scene/depth_gt \\
           --calib out/scene/calib -o out/night
       sparsetools lowlight-synth day.png -o out/night --variants 4 --noise gaussian
+      sparsetools lowlight-synth day.png -o out/night --camera CanonEOS5D4 --color-bias
     """
     from ..ops.lowlight import LowLightParams
     from ..pipeline.lowlight import run_lowlight
@@ -203,6 +179,7 @@ def lowlight_synth(
         flare_max_depth=flare_max_depth,
         noise=noise,
         camera=camera,
+        color_bias=color_bias,
         ratio=ratio,
         bank_seed=bank_seed,
     )

@@ -401,6 +401,111 @@ def batch_options(f):
     return functools.reduce(lambda acc, d: d(acc), reversed(decorators), command)
 
 
+def positive_pair(ctx, param, value):
+    """``A,B`` with 0 < A <= B, both finite."""
+    import math
+
+    if value is None:
+        return None
+    try:
+        a, b = (float(v) for v in value.split(","))
+    except ValueError:
+        raise click.BadParameter(f"expected two numbers as A,B, got {value!r}") from None
+    if not (math.isfinite(a) and math.isfinite(b)):
+        raise click.BadParameter(f"expected finite numbers, got {value!r}")
+    if a > b:
+        raise click.BadParameter(f"range is inverted ({a} > {b})")
+    if a <= 0:
+        raise click.BadParameter(f"values must be > 0, got {value!r}")
+    return a, b
+
+
+# -- sensor noise and depth inputs (lowlight-synth, defocus-synth) ---------------------------------
+
+
+def depth_option(f=None, *, help: str, required: bool = False):
+    """``--depth``: a depth map (one image) or a folder of depth maps matched by frame."""
+
+    def deco(fn):
+        return click.option(
+            "--depth", required=required, type=click.Path(exists=True, path_type=Path), help=help
+        )(fn)
+
+    return deco(f) if f is not None else deco
+
+
+def noise_option(f=None, *, default: str = "eld"):
+    """``--noise``: the ELD read-noise model, or none."""
+    from ..ops.noise import NOISE_MODELS
+
+    def deco(fn):
+        return click.option(
+            "--noise",
+            type=click.Choice(NOISE_MODELS),
+            default=default,
+            show_default=True,
+            help="Sensor noise: ELD (Tukey-lambda read noise), Gaussian read noise (ELD's "
+            "separate Gaussian fit), or none.",
+        )(fn)
+
+    return deco(f) if f is not None else deco
+
+
+def noise_cameras() -> tuple[str, ...]:
+    """ELD noise tables shipped with the package, and ``random`` (one per image)."""
+    from ..ops.noise import CAMERA_PROFILES
+
+    return (*CAMERA_PROFILES, "random")
+
+
+def noise_camera_option(f):
+    """``--camera``: the ELD noise table."""
+    return click.option(
+        "--camera",
+        type=click.Choice(noise_cameras()),
+        default="SonyA7S2",
+        show_default=True,
+        help="ELD noise profile (random: one per image).",
+    )(f)
+
+
+def ratio_option(f=None, *, default: str = "2,32"):
+    """``--ratio``: exposure ratio range of the noise."""
+
+    def deco(fn):
+        return click.option(
+            "--ratio",
+            callback=positive_pair,
+            default=default,
+            show_default=True,
+            metavar="MIN,MAX",
+            help="Exposure ratio ~ logU: higher = darker raw signal, more visible noise.",
+        )(fn)
+
+    return deco(f) if f is not None else deco
+
+
+def color_bias_option(f):
+    """``--color-bias``: add the noise table's per-channel black-level offsets."""
+    return click.option(
+        "--color-bias",
+        is_flag=True,
+        help="Add the ELD table's per-channel black-level offsets of the drawn calibration "
+        "row (with the noise).",
+    )(f)
+
+
+def pixel_offset_option(f):
+    """``--pixel-offset 0|-1``: monodepth2's one-pixel shift."""
+    return click.option(
+        "--pixel-offset",
+        type=click.Choice(["0", "-1"]),
+        default="0",
+        show_default=True,
+        help="-1 shifts pixels by one as monodepth2 does (KITTI's 1-based code).",
+    )(f)
+
+
 # -- output --------------------------------------------------------------------------------------
 
 
@@ -429,10 +534,11 @@ def emit_summary(summary, *, as_json: bool, title: str = "") -> None:
 
 
 def _flatten(d: dict, prefix: str = "") -> list[tuple[str, object]]:
-    """Nested dicts become ``parent.child`` rows; underscores read as spaces."""
+    """Nested dicts become ``parent.child`` rows; underscores of the summary's own names read
+    as spaces (nested keys are data, frame ids say: kept as they are)."""
     rows = []
     for k, v in d.items():
-        key = f"{prefix}{str(k).replace('_', ' ')}"
+        key = f"{prefix}{str(k)}" if prefix else str(k).replace("_", " ")
         if isinstance(v, dict):
             rows.extend(_flatten(v, key + "."))
         else:

@@ -16,6 +16,7 @@ from .options import (
     max_depth_option,
     min_depth_option,
     output_dir_option,
+    pixel_offset_option,
     resize_option,
 )
 
@@ -46,13 +47,7 @@ from .options import (
 @max_depth_option
 @resize_option
 @crop_option
-@click.option(
-    "--pixel-offset",
-    type=click.Choice(["0", "-1"]),
-    default="0",
-    show_default=True,
-    help="-1 shifts pixels by one as monodepth2 does (KITTI's 1-based code).",
-)
+@pixel_offset_option
 @click.option(
     "--kitti-raw",
     type=click.Path(exists=True, file_okay=False, path_type=Path),

@@ -1,10 +1,11 @@
 """Batch job of ``sparsetools equalize``: one MCIE table from a reference frame, applied to all.
 
-The table is built once (from ``--reference``, default the first image) and stored in
-``OUT/mcie_lut.json`` with the reference and clip limit; every frame is mapped through it
-with ``cv2.LUT`` and written as ``OUT/<sequence>/<frame>.png``. The reference frame is an
-input of every frame: when it changes, every frame is recomputed; another clip limit or
-reference is refused unless ``--overwrite``.
+The table is built once (from ``--reference``, default the first image, with the table
+arithmetic ``--rounding``: ``nearest`` or RNW's integer ``rnw``) and stored in
+``OUT/mcie_lut.json`` with the reference, clip limit and rounding; every frame is mapped
+through it with ``cv2.LUT`` and written as ``OUT/<sequence>/<frame>.png``. The reference frame
+is an input of every frame: when it changes, every frame is recomputed; another clip limit,
+reference or rounding is refused unless ``--overwrite``.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import numpy as np
 from ..errors import ParameterError
 from ..io.atomic import atomic_path
 from ..io.sources import Frame
-from ..validate import check_positive
+from ..validate import check_choice, check_positive
 from .batch import Batch, RunSummary
 from .core import FrameTask, RunSpec, check_output_dir, run_frames
 from .lowlight import image_frames
@@ -39,13 +40,18 @@ LUT_FILE = "mcie_lut.json"
 
 @dataclass(frozen=True)
 class EqualizeSettings:
-    """What the equalised frames depend on: the clip limit and the reference frame."""
+    """What the equalised frames depend on: the clip limit, the reference frame and the
+    table arithmetic (``nearest`` or ``rnw``, :func:`sparsetools.ops.enhance.mcie_lut`)."""
 
     clip: float = 0.004
     reference: str = field(default="", metadata={"option": "--reference"})
+    rounding: str = "nearest"
 
     def __post_init__(self) -> None:
+        from ..ops.enhance import ROUNDINGS
+
         check_positive(self.clip, "clip")
+        check_choice(self.rounding, "rounding", ROUNDINGS)
 
 
 @dataclass(frozen=True)
@@ -106,11 +112,12 @@ def equalize_tasks(
     ]
 
 
-def _lut_document(reference: Path, clip: float, lut: np.ndarray) -> dict:
+def _lut_document(reference: Path, clip: float, rounding: str, lut: np.ndarray) -> dict:
     return {
         "method": "MCIE (RNW): per-channel clipped histogram equalisation, one table for all",
         "reference": str(reference),
         "clip": clip,
+        "rounding": rounding,
         "lut": [lut[:, c].tolist() for c in range(lut.shape[1])],
     }
 
@@ -121,14 +128,28 @@ def run_equalize(
     *,
     clip: float = 0.004,
     reference=None,
+    rounding: str = "nearest",
     batch: Batch | None = None,
 ) -> RunSummary:
     """Equalise a sequence with one MCIE table built from the reference frame.
 
+    Parameters
+    ----------
+    images : list of path-like
+        Image files and/or folders.
+    out_dir : path-like
+    clip : float
+        Clip limit as a fraction of the reference's pixel count.
+    reference : path-like or str, optional
+        A file, or the frame id / name of one input (default: the first).
+    rounding : {"nearest", "rnw"}
+        Table arithmetic: rounded to nearest, or RNW's released integer version.
+    batch : Batch, optional
+
     Returns
     -------
     RunSummary
-        Totals: ``reference`` and ``lut_file``.
+        Totals: ``reference``, ``rounding`` and ``lut_file``.
     """
     from ..io.image import read_image
     from ..ops.enhance import mcie_lut
@@ -136,9 +157,9 @@ def run_equalize(
     batch = batch or Batch()
     frames = image_frames(images)
     ref = resolve_reference(reference, frames)
-    settings = EqualizeSettings(clip=clip, reference=str(ref.resolve()))
+    settings = EqualizeSettings(clip=clip, reference=str(ref.resolve()), rounding=rounding)
     out = check_output_dir(out_dir, [*map(str, images), str(ref)])
-    lut = mcie_lut(read_image(ref), clip=clip)
+    lut = mcie_lut(read_image(ref), clip=clip, rounding=rounding)
     tasks = equalize_tasks(frames, out, ref)
     spec = RunSpec(
         "equalize", out, settings, noun="equalised frames", shared_outputs=(out / LUT_FILE,)
@@ -146,5 +167,7 @@ def run_equalize(
     summary = run_frames(EqualizeJob(lut), tasks, batch=batch, spec=spec)
     lut_path = out / LUT_FILE
     with atomic_path(lut_path) as tmp:
-        tmp.write_text(json.dumps(_lut_document(ref, clip, lut)) + "\n", encoding="utf-8")
-    return summary.with_totals({"reference": str(ref), "lut_file": str(lut_path)})
+        tmp.write_text(json.dumps(_lut_document(ref, clip, rounding, lut)) + "\n", encoding="utf-8")
+    return summary.with_totals(
+        {"reference": str(ref), "rounding": rounding, "lut_file": str(lut_path)}
+    )

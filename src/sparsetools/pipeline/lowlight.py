@@ -29,6 +29,7 @@ __all__ = [
     "LowLightSettings",
     "image_frames",
     "lowlight_tasks",
+    "read_sidecar",
     "run_lowlight",
     "write_manifest",
 ]
@@ -186,11 +187,20 @@ def _manifest_schema():
         ("camera", pa.string()), ("system_gain", pa.float64()), ("ratio", pa.float64()),
         ("saturation", pa.float64()), ("tukey_lambda", pa.float64()),
         ("sigma_read", pa.float64()), ("sigma_row", pa.float64()), ("noise_seed", pa.int64()),
+        ("color_bias", pa.list_(pa.float64())), ("noise_table_row", pa.int32()),
         ("record_json", pa.string()),
     ])  # fmt: skip
 
 
-def _read_sidecar(path: Path) -> dict:
+def read_sidecar(path: str | os.PathLike) -> dict:
+    """The JSON object of a record sidecar (``OUT/records/...json``).
+
+    Raises
+    ------
+    FormatError
+        Unreadable, not JSON, or not an object.
+    """
+    path = Path(path)
     try:
         side = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -200,6 +210,9 @@ def _read_sidecar(path: Path) -> dict:
     if not isinstance(side, dict):
         raise FormatError(f"{path}: not a record sidecar (a JSON object); rerun with --overwrite")
     return side
+
+
+_read_sidecar = read_sidecar  # the name tests/robustness/test_fuzz.py imports
 
 
 def write_manifest(out_dir: str | os.PathLike, tasks: list[FrameTask]) -> tuple[Path, int]:
@@ -218,7 +231,7 @@ def write_manifest(out_dir: str | os.PathLike, tasks: list[FrameTask]) -> tuple[
         if not all(Path(p).is_file() for p in t.outputs.values()):
             continue
         for side_path in _images_and_records(t)[1]:
-            side = _read_sidecar(side_path)
+            side = read_sidecar(side_path)
             rec = LowLightRecord.from_dict(side["record"])
             rows.append({
                 "output": side["output"], "source": side["source"], "depth": side["depth"],

@@ -1,0 +1,213 @@
+"""``sparsetools accumulate``: KITTI-like semi-dense depth from the scans of t-K..t+K."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from .options import (
+    batch_options,
+    calib_option,
+    emit_summary,
+    image_option,
+    image_size_option,
+    max_depth_option,
+    min_depth_option,
+    non_negative,
+    output_dir_option,
+    pixel_offset_option,
+    positive,
+)
+
+
+@click.command("accumulate")
+@click.argument(
+    "clouds",
+    nargs=-1,
+    required=True,
+    metavar="CLOUD...",
+    type=click.Path(exists=True, path_type=Path),
+)
+@output_dir_option
+@calib_option
+@image_size_option
+@image_option
+@click.option(
+    "--window",
+    type=click.IntRange(0, 100),
+    default=5,
+    show_default=True,
+    metavar="K",
+    help="Merge frames t-K..t+K of the same sequence (clipped at its ends; KITTI's ground "
+    "truth: 5, i.e. 11 scans).",
+)
+@click.option(
+    "--poses",
+    type=click.Path(exists=True, path_type=Path),
+    help="KITTI odometry poses.txt (one sequence) or a folder of <sequence>.txt / "
+    "<sequence>/poses.txt [default: the input's own: synthetic video, KITTI raw oxts, nuScenes].",
+)
+@click.option(
+    "--poses-frame",
+    type=click.Choice(["auto", "camera", "sensor"]),
+    default="auto",
+    show_default=True,
+    help="What --poses holds: camera poses (KITTI odometry) or the LiDAR's; auto: sensor "
+    "when the file name contains 'velodyne' or 'lidar'.",
+)
+@click.option(
+    "--icp", is_flag=True, help="Poses by Open3D point-to-plane ICP between consecutive scans."
+)
+@click.option(
+    "--icp-min-range",
+    type=float,
+    default=0.0,
+    show_default=True,
+    callback=non_negative,
+    help="ICP: leave out points nearer than this horizontal range, metres (dense traffic: 20).",
+)
+@click.option(
+    "--icp-voxel", type=float, default=0.2, show_default=True, callback=positive,
+    help="ICP: finest voxel size, metres.",
+)  # fmt: skip
+@click.option(
+    "--icp-max-distance", type=float, default=0.5, show_default=True, callback=positive,
+    help="ICP: finest correspondence distance, metres.",
+)  # fmt: skip
+@click.option(
+    "--mask",
+    type=click.Path(exists=True, path_type=Path),
+    help="Moving-object masks of frame t (PNG, non-zero = moving) matched by frame, or a "
+    "synthetic video folder (its moving_mask/): other scans' points there are dropped.",
+)
+@min_depth_option
+@max_depth_option
+@pixel_offset_option
+@click.option(
+    "--occlusion-rel", type=float, default=0.1, show_default=True, callback=non_negative,
+    help="Drop other scans' points farther than (1 + this) x the nearest depth in their window.",
+)  # fmt: skip
+@click.option("--no-occlusion", is_flag=True, help="No occlusion test.")
+@click.option(
+    "--occlusion-foreground",
+    type=click.Choice(["all", "own"]),
+    default="all",
+    show_default=True,
+    help="Foreground of the occlusion test: frame t's and the other kept points, or frame t's.",
+)
+@click.option(
+    "--consistency-rel", type=float, default=0.1, show_default=True, callback=non_negative,
+    help="Drop other scans' points nearer than 1 / (1 + this) x all frame t measured near them.",
+)  # fmt: skip
+@click.option("--no-consistency", is_flag=True, help="No moving-object (consistency) test.")
+@click.option(
+    "--footprint-m", type=float, default=0.1, show_default=True, callback=positive,
+    help="Half size of the test window in metres at the point's depth.",
+)  # fmt: skip
+@click.option(
+    "--min-radius-px", type=click.IntRange(0, 64), default=1, show_default=True,
+    help="Smallest test window radius, pixels.",
+)  # fmt: skip
+@click.option(
+    "--max-radius-px", type=click.IntRange(0, 64), default=8, show_default=True,
+    help="Largest test window radius, pixels.",
+)  # fmt: skip
+@batch_options
+def accumulate(
+    clouds,
+    out_dir,
+    calib,
+    image_size,
+    image,
+    window,
+    poses,
+    poses_frame,
+    icp,
+    icp_min_range,
+    icp_voxel,
+    icp_max_distance,
+    mask,
+    min_depth,
+    max_depth,
+    pixel_offset,
+    occlusion_rel,
+    no_occlusion,
+    occlusion_foreground,
+    consistency_rel,
+    no_consistency,
+    footprint_m,
+    min_radius_px,
+    max_radius_px,
+    batch,
+):
+    """Merge the LiDAR scans of frames t-K..t+K into frame t's view (KITTI-style ground truth).
+
+    CLOUD: scan files or folders, KITTI raw drives, a synthetic video folder (synth-scene
+    --video) or a nuScenes root (LIDAR_TOP key frames). Each scan is moved into frame t with
+    the frames' poses (--poses, the input's own, or --icp), projected, and the other scans'
+    points that frame t cannot see are dropped: behind the local foreground (occluded),
+    nearer than what frame t's own scan measured around them (inconsistent: moving objects)
+    or inside --mask. Writes OUT/<sequence>/<frame>.png (KITTI uint16), the calibration as
+    OUT/calib/<sequence>/<frame>.json and, with --icp, each pair's pose in
+    OUT/icp/<sequence>/<frame>.json; the summary counts the removals per frame and reason.
+    A frame is recomputed when a scan of its window, its calibration or a pose file changed.
+
+    \b
+    Examples:
+      sparsetools synth-scene out/video --video --static --sequences 1 --frames 12
+      sparsetools accumulate out/video -o out/acc --window 5
+      sparsetools accumulate ../shared/data/real/kitti-raw-sequence-2011_09_26 \\
+          --icp --icp-min-range 20 --window 5 -o out/acc_kitti
+      sparsetools accumulate velodyne/ --calib calib/ --poses poses.txt -o out/acc
+    """
+    from ..io.sources.poses import accumulation_frames
+    from ..ops.accumulate import AccumulateSettings
+    from ..pipeline.accumulate import IcpSettings, run_accumulate
+
+    icp_given = [
+        name
+        for name, value, default in (
+            ("--icp-min-range", icp_min_range, 0.0),
+            ("--icp-voxel", icp_voxel, 0.2),
+            ("--icp-max-distance", icp_max_distance, 0.5),
+        )
+        if value != default
+    ]
+    if icp_given and not icp:
+        raise click.UsageError(f"{icp_given[0]} goes with --icp")
+    if icp and poses is not None:
+        raise click.UsageError("give --poses or --icp, not both")
+    if poses is None and poses_frame != "auto":
+        raise click.UsageError("--poses-frame goes with --poses")
+    if min_radius_px > max_radius_px:
+        raise click.BadParameter(
+            f"must be >= --min-radius-px ({min_radius_px}), got {max_radius_px}",
+            param_hint="--max-radius-px",
+        )
+    settings = AccumulateSettings(
+        min_depth=min_depth,
+        max_depth=max_depth,
+        pixel_offset=int(pixel_offset),
+        occlusion_rel=None if no_occlusion else occlusion_rel,
+        occlusion_foreground=occlusion_foreground,
+        consistency_rel=None if no_consistency else consistency_rel,
+        footprint_m=footprint_m,
+        min_radius_px=min_radius_px,
+        max_radius_px=max_radius_px,
+    )
+    frames = accumulation_frames(list(clouds), calib=calib, image=image)
+    summary = run_accumulate(
+        frames,
+        out_dir,
+        window=window,
+        accumulate=settings,
+        poses=poses,
+        poses_frame=poses_frame,
+        icp=IcpSettings(icp_min_range, icp_voxel, icp_max_distance) if icp else None,
+        mask=mask,
+        image_size=image_size,
+        batch=batch,
+        inputs=[*clouds, calib, image, poses, mask],
+    )
+    emit_summary(summary, as_json=batch.as_json, title=f"accumulated depth maps in {out_dir}")
