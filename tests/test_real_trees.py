@@ -135,3 +135,109 @@ def test_dataset_build_from_a_depth_completion_tree_keeps_every_frame(raw_root, 
     assert again["processed"] == 0 and again["skipped_existing"] == 2 * N - 1
     r = run("dataset", "verify", ds)
     assert r.exit_code == 0, r.output
+
+
+def test_kitti_raw_route_in_one_command(raw_root, tmp_path):
+    ds = tmp_path / "ds"
+    args = ["dataset", "kitti-raw", raw_root / DATE, "-o", ds, "--beams", "4"]
+    s = summary(*args)
+    assert s["samples"] == 2 * N and s["sequences"] == 2 and s["failed"] == 0
+    from sparsetools.io.dataset_reader import DatasetReader
+
+    rows = DatasetReader(ds).manifest.to_pylist()
+    assert {r["source"] for r in rows} == {"lidar-4beam"}
+    assert all(0 < r["n_sparse"] < r["n_gt"] for r in rows)
+    assert sorted({r["sequence"] for r in rows}) == list(DRIVES)
+    assert all(r["fx"] == pytest.approx(721.5377) for r in rows)
+    again = summary(*args)
+    assert again["processed"] == 0 and again["skipped_existing"] == 2 * N
+
+
+def test_kitti_dc_route_and_selection(raw_root, tmp_path):
+    full, b4 = tmp_path / "full", tmp_path / "b4"
+    assert run("project", raw_root / DATE, "-o", full).exit_code == 0
+    assert run("beams", raw_root / DATE, "--n", "4", "-o", tmp_path / "b4c").exit_code == 0
+    assert run("project", tmp_path / "b4c", "--calib", raw_root / DATE, "-o", b4).exit_code == 0
+    dc = _dc_tree(tmp_path, sparse=b4, gt=full)
+    s = summary("dataset", "kitti-dc", dc, "--raw", raw_root / DATE, "-o", tmp_path / "ds")
+    assert s["samples"] == 2 * N - 1 and s["splits"] == {"train": N - 1, "val": N}
+    assert s["unmatched"]["without_gt"] == 1
+
+    # val_selection_cropped: <drive>_<kind>_<frame>_image_02.<ext> with its own intrinsics
+    sel = dc / "depth_selection" / "val_selection_cropped"
+    for sub in ("image", "velodyne_raw", "groundtruth_depth", "intrinsics"):
+        (sel / sub).mkdir(parents=True)
+    drive, frame = DRIVES[1], "0000000001"
+    stem = f"{drive}_{{kind}}_{frame}_image_02"
+    shutil.copy(raw_root / DATE / drive / "image_02" / "data" / f"{frame}.png",
+                sel / "image" / f"{stem.format(kind='image')}.png")  # fmt: skip
+    shutil.copy(b4 / drive / f"{frame}.png",
+                sel / "velodyne_raw" / f"{stem.format(kind='velodyne_raw')}.png")  # fmt: skip
+    shutil.copy(full / drive / f"{frame}.png",
+                sel / "groundtruth_depth" / f"{stem.format(kind='groundtruth_depth')}.png")  # fmt: skip
+    (sel / "intrinsics" / f"{stem.format(kind='image')}.txt").write_text(
+        "7.215377e+02 0.000000e+00 6.095593e+02 0.000000e+00 7.215377e+02 1.728540e+02 "
+        "0.000000e+00 0.000000e+00 1.000000e+00\n"
+    )
+    s = summary("dataset", "kitti-dc", dc, "--selection", "-o", tmp_path / "sel")
+    assert s["samples"] == 1 and s["splits"] == {"val_selection": 1}
+    from sparsetools.io.dataset_reader import DatasetReader
+
+    (row,) = DatasetReader(tmp_path / "sel").manifest.to_pylist()
+    assert row["id"] == f"{drive}/{frame}" and row["cy"] == pytest.approx(172.854)
+
+
+@pytest.mark.parametrize(
+    ("args", "match"),
+    [
+        (["dataset", "kitti-dc", "{empty}", "--raw", "{raw}"], "not a KITTI depth-completion tree"),
+        (["dataset", "kitti-raw", "{empty}"], "not a KITTI raw drive, date folder or root"),
+    ],
+)
+def test_bad_roots_are_one_line(raw_root, tmp_path, args, match):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    args = [a.format(empty=empty, raw=raw_root / DATE) for a in args]
+    r = run(*args, "-o", tmp_path / "ds")
+    lines = r.stderr.strip().splitlines()
+    assert r.exit_code == 1 and len(lines) == 1 and match in lines[0], r.output
+
+
+def _read_official_layout(root: Path, name: str) -> dict[tuple[str, str, str], Path]:
+    """A straightforward reader of the KITTI depth-completion layout, as other code reads it:
+    {split}/{drive}/proj_depth/{name}/image_02/{frame}.png."""
+    out = {}
+    for split in ("train", "val"):
+        for drive_dir in sorted((root / split).iterdir()) if (root / split).is_dir() else []:
+            folder = drive_dir / "proj_depth" / name / "image_02"
+            for f in sorted(folder.glob("*.png")):
+                out[(split, drive_dir.name, f.stem)] = f
+    return out
+
+
+def test_export_writes_the_official_layout(raw_root, tmp_path):
+    full, b4 = tmp_path / "full", tmp_path / "b4"
+    assert run("project", raw_root / DATE, "-o", full).exit_code == 0
+    assert run("beams", raw_root / DATE, "--n", "4", "-o", tmp_path / "b4c").exit_code == 0
+    assert run("project", tmp_path / "b4c", "--calib", raw_root / DATE, "-o", b4).exit_code == 0
+    dc = _dc_tree(tmp_path, sparse=b4, gt=full)
+    out = tmp_path / "export"
+    s = summary("dataset", "export", b4, "-o", out, "--name", "velodyne_raw_4beam",
+                "--split-from", dc / "data_depth_velodyne")  # fmt: skip
+    assert s["frames"] == 2 * N
+    found = _read_official_layout(out, "velodyne_raw_4beam")
+    assert sorted(found) == sorted(
+        (split, d, f"{i:010d}") for d, split in zip(DRIVES, ("train", "val"), strict=True)
+        for i in range(N)
+    )  # fmt: skip
+    for (_, drive, frame), path in found.items():
+        assert path.read_bytes() == (b4 / drive / f"{frame}.png").read_bytes()
+    # the exported tree is itself a depth-completion tree the dataset route reads
+    s = summary("dataset", "kitti-dc", out, "--raw", raw_root / DATE, "-o", tmp_path / "ds",
+                "--sparse-name", "velodyne_raw_4beam")  # fmt: skip
+    assert s["samples"] == 2 * N and s["splits"] == {"train": N, "val": N}
+    sel = summary("dataset", "export", b4, "-o", tmp_path / "sel", "--layout", "kitti-selection",
+                  "--name", "velodyne_raw")  # fmt: skip
+    assert sel["frames"] == 2 * N
+    assert (tmp_path / "sel" / "velodyne_raw"
+            / f"{DRIVES[0]}_velodyne_raw_0000000001_image_02.png").is_file()  # fmt: skip

@@ -10,12 +10,16 @@ import click
 from .options import (
     batch_options,
     calib_option,
+    crop_option,
     emit_summary,
     gt_option,
     json_option,
+    nuscenes_version_option,
     output_dir_option,
     quiet_debug_options,
+    resize_option,
     seed_option,
+    sweeps_option,
 )
 
 
@@ -253,6 +257,195 @@ def _fmt(v) -> str:
     if isinstance(v, float):
         return f"{v:.4g}"
     return str(v)
+
+
+def _summary(summary, batch, out_dir) -> None:
+    d = summary.as_dict()
+    emit_summary(d if batch.as_json else _flat(d), as_json=batch.as_json,
+                 title=f"dataset written to {out_dir}")  # fmt: skip
+
+
+_SPLIT_HELP = "Split fractions over sequences [default: 0.8,0.1,0.1]; or name=fraction,..."
+
+
+@dataset.command("nuscenes")
+@click.argument("root", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@output_dir_option(help="Dataset folder (stages in DATASET/.sources/).")
+@nuscenes_version_option
+@click.option("--camera", default="CAM_FRONT", show_default=True, help="Camera channel.")
+@click.option(
+    "--sensor", default="RADAR_FRONT", show_default=True, help="Sparse input: RADAR_* or LIDAR_TOP."
+)
+@sweeps_option(default=5, help="Sweeps of --sensor merged per sample.")
+@resize_option
+@crop_option
+@click.option(
+    "--gt-sensor", default="LIDAR_TOP", show_default=True, metavar="CHANNEL|none",
+    help="Ground truth: the projection of this sensor (none: no ground truth).",
+)  # fmt: skip
+@click.option(
+    "--gt-sweeps", type=click.IntRange(min=1), default=1, show_default=True,
+    help="Sweeps of the ground-truth sensor merged.",
+)  # fmt: skip
+@click.option("--jbf", is_flag=True, help="Expand the radar with jbf-expand (confidence stored).")
+@click.option("--scenes", default=None, metavar="A,B,...", help="Only these scene names.")
+@click.option(
+    "--night", type=click.Choice(["any", "only", "exclude"]), default="any", show_default=True,
+    help="Scenes by their description: all, only night ones, or only day ones.",
+)  # fmt: skip
+@click.option("--split", callback=_split_callback, metavar="TRAIN,VAL,TEST", help=_SPLIT_HELP)
+@seed_option(help="Seed of the split assignment.")
+@batch_options
+def nuscenes(root, out_dir, nuscenes_version, camera, sensor, sweeps, resize, crop, gt_sensor,
+             gt_sweeps, jbf, scenes, night, split, seed, batch):  # fmt: skip
+    """nuScenes samples to a dataset: camera image, radar (or LiDAR) input, LiDAR truth.
+
+    Per sample: the camera image, resized and cropped with its intrinsics adjusted, the
+    sensor's sweeps projected into it (devkit filters; radar with its own ego pose), optionally
+    expanded by the joint bilateral filter, and LIDAR_TOP projected as ground truth. Samples
+    are frames of their scene: splits go by scene.
+
+    \b
+    Example (the radar paper's setting: 800x450, top 100 rows cut):
+      sparsetools dataset nuscenes /data/nuscenes -o out/nus_radar --sweeps 5 \\
+          --resize 0.5 --crop 100,0,350,800 --jbf
+    """
+    from ..pipeline.dataset.roots import build_nuscenes_dataset
+
+    summary = build_nuscenes_dataset(
+        root, out_dir, version=nuscenes_version, camera=camera, sensor=sensor, sweeps=sweeps,
+        resize=resize, crop=crop, gt_sensor=None if gt_sensor.lower() == "none" else gt_sensor,
+        gt_sweeps=gt_sweeps, jbf=jbf,
+        scenes=tuple(s.strip() for s in scenes.split(",")) if scenes else None,
+        night=night, split=split, seed=seed, batch=batch,
+    )  # fmt: skip
+    _summary(summary, batch, out_dir)
+
+
+@dataset.command("kitti-raw")
+@click.argument("root", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@output_dir_option(help="Dataset folder (stages in DATASET/.sources/).")
+@click.option(
+    "--beams", type=click.IntRange(min=1, max=64), default=4, show_default=True,
+    help="Beams of the input (the full scan is the ground truth); 64: the full scan.",
+)  # fmt: skip
+@click.option("--split", callback=_split_callback, metavar="TRAIN,VAL,TEST", help=_SPLIT_HELP)
+@click.option(
+    "--split-file", "split_files", multiple=True, callback=_split_file_callback,
+    metavar="[NAME=]FILE", help="Eigen / Eigen-Zhou split lists (repeat per split).",
+)  # fmt: skip
+@seed_option(help="Seed of the split assignment.")
+@batch_options
+def kitti_raw(root, out_dir, beams, split, split_files, seed, batch):
+    """KITTI raw drives to a dataset: image, N-beam projected LiDAR, full-scan ground truth.
+
+    ROOT is a drive, a date folder (all its drives) or a root of dates. Frames are keyed by
+    drive, so frame names that repeat across drives stay distinct; splits go by drive, or by
+    Eigen split files.
+
+    \b
+    Example:
+      sparsetools dataset kitti-raw /data/kitti_raw -o out/kitti4 --beams 4 \\
+          --split-file train=eigen_train_files.txt --split-file test=eigen_test_files.txt
+    """
+    from ..pipeline.dataset.roots import build_kitti_raw_dataset
+
+    if split is not None and split_files:
+        raise click.UsageError("give --split or --split-file, not both")
+    summary = build_kitti_raw_dataset(
+        root, out_dir, beams=None if beams == 64 else beams, split=split,
+        split_files=split_files or None, seed=seed, batch=batch,
+    )  # fmt: skip
+    _summary(summary, batch, out_dir)
+
+
+@dataset.command("kitti-dc")
+@click.argument("root", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@output_dir_option(help="Dataset folder.")
+@click.option(
+    "--raw", type=click.Path(exists=True, file_okay=False, path_type=Path),
+    help="KITTI raw tree holding the images (<date>/<drive>/image_02/data/).",
+)  # fmt: skip
+@click.option(
+    "--sparse-name", default=None, metavar="NAME",
+    help="proj_depth map set of the input [default: velodyne_raw].",
+)  # fmt: skip
+@click.option(
+    "--gt-name", default=None, metavar="NAME",
+    help="proj_depth map set of the ground truth [default: groundtruth].",
+)  # fmt: skip
+@click.option(
+    "--selection", is_flag=True,
+    help="Build the 1,000-frame depth_selection/val_selection_cropped set instead (its own "
+    "images and intrinsics).",
+)  # fmt: skip
+@batch_options
+def kitti_dc(root, out_dir, raw, sparse_name, gt_name, selection, batch):
+    """A KITTI depth-completion root to a dataset, split as the tree splits it (train / val).
+
+    ROOT holds data_depth_velodyne/ and data_depth_annotated/ ({train,val}/<drive>/proj_depth/
+    <name>/image_02/). Frames without ground truth (the first and last 5 of each drive) are
+    counted in the summary's unmatched line.
+
+    \b
+    Examples:
+      sparsetools dataset kitti-dc /data/kitti_dc --raw /data/kitti_raw -o out/dc
+      sparsetools dataset kitti-dc /data/kitti_dc --raw /data/kitti_raw -o out/dc4 \\
+          --sparse-name velodyne_raw_4beam
+      sparsetools dataset kitti-dc /data/kitti_dc --selection -o out/dc_selection
+    """
+    from ..pipeline.dataset.roots import build_kitti_dc_dataset
+
+    if not selection and raw is None:
+        raise click.UsageError("--raw (the KITTI raw images) is needed, or use --selection")
+    summary = build_kitti_dc_dataset(
+        root, out_dir, raw=raw, sparse_name=sparse_name, gt_name=gt_name, selection=selection,
+        batch=batch,
+    )  # fmt: skip
+    _summary(summary, batch, out_dir)
+
+
+@dataset.command("export")
+@click.argument("maps", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@output_dir_option(help="Root of the layout written.")
+@click.option(
+    "--layout", type=click.Choice(["kitti-dc", "kitti-selection"]), default="kitti-dc",
+    show_default=True,
+    help="kitti-dc: {train,val}/<drive>/proj_depth/<name>/image_02/<frame>.png; kitti-selection:"
+    " <name>/<drive>_<name>_<frame>_image_02.png (val_selection_cropped naming).",
+)  # fmt: skip
+@click.option(
+    "--name",
+    default="velodyne_raw",
+    show_default=True,
+    help="Map set name (e.g. velodyne_raw_4beam).",
+)
+@click.option(
+    "--split-from", type=click.Path(exists=True, file_okay=False, path_type=Path),
+    help="A depth-completion tree whose train/val folders give each drive's split.",
+)  # fmt: skip
+@click.option("--split", "default_split", default=None, help="Split of drives --split-from lacks.")
+@batch_options
+def export(maps, out_dir, layout, name, split_from, default_split, batch):
+    """Write depth maps of KITTI drives in the official depth-completion layout.
+
+    MAPS holds maps per drive (<drive>/<frame>.png: a project, beams+project, jbf-expand or
+    densify output for a KITTI raw root); they are copied byte for byte, so a 4-beam or radar
+    variant of the benchmark drops into code that reads only the official layout.
+
+    \b
+    Example:
+      sparsetools dataset export out/depth4 -o out/kitti_dc4 --name velodyne_raw_4beam \\
+          --split-from /data/kitti_dc/data_depth_velodyne
+    """
+    from ..pipeline.export import ExportSettings, drive_splits, export_kitti_dc
+
+    splits = drive_splits(split_from) if split_from is not None else {}
+    summary = export_kitti_dc(
+        maps, out_dir, ExportSettings(layout=layout, name=name, splits=splits),
+        split=default_split, batch=batch,
+    )  # fmt: skip
+    emit_summary(summary, as_json=batch.as_json, title=f"maps exported to {out_dir}")
 
 
 @dataset.command("info")

@@ -506,6 +506,31 @@ def pixel_offset_option(f):
     )(f)
 
 
+# -- nuScenes -----------------------------------------------------------------------------------
+
+
+def nuscenes_version_option(f):
+    return click.option(
+        "--nuscenes-version",
+        default="v1.0-mini",
+        show_default=True,
+        help="nuScenes table version (folder under ROOT).",
+    )(f)
+
+
+def sweeps_option(f=None, *, default: int | None = None, help: str):
+    def deco(fn):
+        return click.option(
+            "--sweeps",
+            type=click.IntRange(min=1),
+            default=default,
+            show_default=default is not None,
+            help=help,
+        )(fn)
+
+    return deco(f) if f is not None else deco
+
+
 # -- output --------------------------------------------------------------------------------------
 
 
@@ -538,7 +563,7 @@ def _flatten(d: dict, prefix: str = "") -> list[tuple[str, object]]:
     as spaces (nested keys are data, frame ids say: kept as they are)."""
     rows = []
     for k, v in d.items():
-        key = f"{prefix}{str(k)}" if prefix else str(k).replace("_", " ")
+        key = f"{prefix}{k!s}" if prefix else str(k).replace("_", " ")
         if isinstance(v, dict):
             rows.extend(_flatten(v, key + "."))
         else:

@@ -15,9 +15,11 @@ from .options import (
     image_size_option,
     max_depth_option,
     min_depth_option,
+    nuscenes_version_option,
     output_dir_option,
     pixel_offset_option,
     resize_option,
+    sweeps_option,
 )
 
 
@@ -68,24 +70,14 @@ from .options import (
     metavar="ROOT",
     help="nuScenes root (tables in ROOT/<nuscenes-version>/).",
 )
-@click.option(
-    "--nuscenes-version",
-    default="v1.0-mini",
-    show_default=True,
-    help="nuScenes table version (folder under ROOT).",
-)
+@nuscenes_version_option
 @click.option(
     "--sensor",
     default="RADAR_FRONT",
     show_default=True,
     help="nuScenes sensor channel to project (RADAR_FRONT, LIDAR_TOP, ...).",
 )
-@click.option(
-    "--sweeps",
-    type=click.IntRange(min=1),
-    default=None,
-    help="nuScenes sweeps accumulated per key frame [default: 5 for radar, 1 else].",
-)
+@sweeps_option(help="nuScenes sweeps accumulated per key frame [default: 5 for radar, 1 else].")
 @batch_options
 def project(
     clouds,

@@ -272,6 +272,38 @@ def _json_calibration(d: dict, path: Path, camera) -> Calibration:
     )
 
 
+def _is_bare_intrinsics(path: Path) -> bool:
+    """A text file of numbers only, no ``key:`` lines (KITTI val_selection_cropped intrinsics)."""
+    try:
+        text = read_calibration_text(path)
+    except CalibrationError:
+        return False
+    return ":" not in text and bool(text.split())
+
+
+def read_intrinsics_txt(path: str | os.PathLike) -> Calibration:
+    """A bare 3x3 intrinsics file (9 numbers; KITTI ``val_selection_cropped/intrinsics``).
+
+    It holds no sensor transform: ``T_cam_from_sensor`` is the identity (the calibration
+    describes the image only: fx, fy, cx, cy).
+    """
+    path = Path(path)
+    try:
+        values = np.array([float(v) for v in read_calibration_text(path).split()])
+    except ValueError as exc:
+        raise CalibrationError(f"{path}: intrinsics file holds non-numeric values") from exc
+    if values.size not in (9, 12):
+        raise CalibrationError(
+            f"{path}: an intrinsics file holds 9 numbers (a 3x3 K) or 12 (a 3x4 P), got "
+            f"{values.size}"
+        )
+    M = values.reshape(3, -1)
+    return Calibration(
+        K=M[:, :3], T_cam_from_sensor=np.eye(4), P=M if M.shape[1] == 4 else None,
+        source=str(path),
+    )  # fmt: skip
+
+
 def write_json_calib(
     path: str | os.PathLike, calib: Calibration, *, overwrite: bool = True, **extra
 ) -> None:
@@ -343,6 +375,8 @@ def load_calibration(
         )
     elif p.suffix.lower() == ".json":
         calib = read_json_calib(p, camera=camera)
+    elif p.suffix.lower() == ".txt" and _is_bare_intrinsics(p):
+        calib = read_intrinsics_txt(p)
     elif p.suffix.lower() == ".txt":
         cam = int(camera) if not isinstance(camera, str) else 2
         calib = read_kitti_object_calib(p, camera=cam)

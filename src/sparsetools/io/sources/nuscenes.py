@@ -36,6 +36,7 @@ def nuscenes_frames(
     camera: str = "CAM_FRONT",
     sweeps: int = 5,
     scenes: tuple[str, ...] | None = None,
+    night: str = "any",
 ) -> list[Frame]:
     """One frame per sample holding key frames of both ``sensor`` and ``camera``.
 
@@ -48,6 +49,9 @@ def nuscenes_frames(
         Sweeps of ``sensor`` merged per frame (the key sweep and the previous ones).
     scenes : tuple of str, optional
         Keep only these scene names.
+    night : {"any", "only", "exclude"}
+        Keep every scene, only night scenes, or only day scenes (nuScenes marks night scenes
+        with "night" in the scene description).
 
     Raises
     ------
@@ -59,6 +63,8 @@ def nuscenes_frames(
 
     if sweeps < 1:
         raise ParameterError(f"must be >= 1, got {sweeps}", param="sweeps")
+    if night not in ("any", "only", "exclude"):
+        raise ParameterError(f"must be any, only or exclude, got {night!r}", param="night")
     tables = NuScenesTables(root, version)
     frames: list[Frame] = []
     missing = 0
@@ -66,6 +72,10 @@ def nuscenes_frames(
         scene = tables.scene_name(sample)
         if scenes is not None and scene not in scenes:
             continue
+        if night != "any":
+            description = str((tables.scene(sample) or {}).get("description", ""))
+            if ("night" in description.lower()) != (night == "only"):
+                continue
         try:
             key_sd = tables.sample_data(sample["token"], sensor)
             cam = tables.sample_data(sample["token"], camera)
@@ -103,12 +113,16 @@ def nuscenes_frames(
                 image=tables.path(cam),
                 calibration=calibration,
                 pose=_flat(T_global_from_key),
-                timestamp=float(key_sd.get("timestamp", 0)) * 1e-6 or None,
+                timestamp=(
+                    None if key_sd.get("timestamp") is None else float(key_sd["timestamp"]) * 1e-6
+                ),
                 extra_inputs=tuple(Path(p) for p in tables.table_files),
             )
         )
     if not frames:
         which = f" of scenes {', '.join(scenes)}" if scenes else ""
+        if night != "any":
+            which += " at night" if night == "only" else " by day"
         raise FormatError(
             f"{root}: no sample{which} of {version} has key frames of both {sensor} and {camera}"
         )

@@ -58,6 +58,9 @@ CALIB_SUFFIXES = (".txt", ".json")
 SPARSE_FORMATS = ("png", "parquet", "both")
 #: jbf-expand names its confidence maps ``<stem>_conf.png``; they match frame ``<stem>``.
 CONF_SUFFIX = "_conf"
+#: Where the one-command routes (``dataset nuscenes`` / ``kitti-raw``) keep what they prepare
+#: (camera images, projected maps): each a sparsetools output folder with its own record.
+SOURCES_DIR = ".sources"
 _PART_RE = re.compile(r"^part-(\d{5,})\.parquet$")
 
 
@@ -117,6 +120,8 @@ class BuildSettings:
     """What a dataset's samples depend on: compared on every run that adds to it."""
 
     sparse_format: str = "both"
+    sparse_name: str | None = None
+    gt_name: str | None = None
     link: bool = False
     source: str = "lidar"
     params: dict | None = None
@@ -141,8 +146,9 @@ class _Inputs:
     splits: dict[FrameKey, str]
 
 
-def _index(rgb, sparse, gt, confidence, calib) -> _Inputs:
-    rgb_index = index_input(rgb, "image", option="--rgb")
+def _index(rgb, sparse, gt, confidence, calib, *, names=(None, None), camera=2) -> _Inputs:
+    sparse_name, gt_name = names
+    rgb_index = index_input(rgb, "image", option="--rgb", camera=camera)
     rgb_files = rgb_index.files
     sparse_path = Path(sparse)
     if not sparse_path.exists():
@@ -154,7 +160,7 @@ def _index(rgb, sparse, gt, confidence, calib) -> _Inputs:
     elif sparse_path.is_dir() and (sparse_path / "sparse.parquet").is_file():
         # the output folder of ``sparsetools project --format parquet``
         try:
-            sparse_files = index_input(sparse_path, "sparse", option="--sparse")
+            sparse_files = index_input(sparse_path, "sparse", option="--sparse", name=sparse_name)
         except FormatError:
             table_file = sparse_path / "sparse.parquet"
     if table_file is not None:
@@ -163,7 +169,9 @@ def _index(rgb, sparse, gt, confidence, calib) -> _Inputs:
         sparse_path = table_file
         splits = {}
     else:
-        sparse_files = index_input(sparse_path, "sparse", option="--sparse")
+        sparse_files = index_input(
+            sparse_path, "sparse", option="--sparse", name=sparse_name, camera=camera
+        )
         sparse_in = sparse_files.files
         splits = dict(sparse_files.splits)
     matched_sparse = match_keys(rgb_files, sparse_in)
@@ -174,7 +182,7 @@ def _index(rgb, sparse, gt, confidence, calib) -> _Inputs:
         if folder is None:
             continue
         if kind == "gt":
-            gt_index = index_input(folder, "gt", option="--gt")
+            gt_index = index_input(folder, "gt", option="--gt", name=gt_name, camera=camera)
             found = match_keys(keys, gt_index.files)
             splits.update(gt_index.splits)
         else:
@@ -190,7 +198,9 @@ def _index(rgb, sparse, gt, confidence, calib) -> _Inputs:
         if is_shared_calibration(cpath):
             calib_of = dict.fromkeys(keys, str(cpath))
         else:
-            found = match_keys(keys, index_input(cpath, "calib", option="--calib").files)
+            found = match_keys(
+                keys, index_input(cpath, "calib", option="--calib", camera=camera).files
+            )
             unmatched["without_calib"] = len(keys) - len(found)
             keys = [k for k in keys if k in found]
             calib_of = {k: str(found[k]) for k in keys}
@@ -217,7 +227,7 @@ def _dataset_state(out: Path) -> str:
     if out.exists() and any(
         p
         for p in out.iterdir()
-        if p.name not in ("rgb", SPARSE_DIR, "gt", "confidence", RECORD_DIR)
+        if p.name not in ("rgb", SPARSE_DIR, "gt", "confidence", RECORD_DIR, SOURCES_DIR)
     ):
         raise OutputError(
             f"{out} exists and is not a sparsetools dataset (no {MANIFEST_NAME}); "
@@ -242,6 +252,9 @@ def build_dataset(
     link: bool = False,
     source: str = "lidar",
     params: dict | None = None,
+    sparse_name: str | None = None,
+    gt_name: str | None = None,
+    camera: int = 2,
     batch: Batch | None = None,
     frames_per_part: int = 1000,
 ) -> RunSummary:
@@ -290,6 +303,11 @@ def build_dataset(
         Sensor that produced the sparse depth (``lidar``, ``lidar-4beam``, ``radar``...).
     params : dict, optional
         Generation parameters stored (as JSON) in every new row.
+    sparse_name, gt_name : str, optional
+        KITTI depth-completion map sets (``proj_depth/<name>``) of ``sparse`` and ``gt``
+        (default ``velodyne_raw`` / ``groundtruth`` when the tree holds several).
+    camera : int
+        KITTI camera (``image_02``, ``proj_depth/*/image_02``).
     batch : Batch, optional
         Executor, error policy, progress; ``overwrite``: rebuild every frame given and drop
         the frames of earlier runs (the dataset then holds this run's frames only).
@@ -320,7 +338,7 @@ def build_dataset(
     if not str(source).strip():
         raise ParameterError("must not be empty", param="source")
     t_start = time.perf_counter()
-    inputs = _index(rgb, sparse, gt, confidence, calib)
+    inputs = _index(rgb, sparse, gt, confidence, calib, names=(sparse_name, gt_name), camera=camera)
     keys = inputs.keys
     for k in keys:
         if k.frame.startswith(TMP_PREFIX):
@@ -356,10 +374,12 @@ def build_dataset(
     paths = [p for p in (rgb, sparse, gt, confidence) if p is not None]
     out = check_output_dir(out_dir, [p for p in paths if Path(p).is_dir()])
     real_out = out.resolve()
+    sources = real_out / SOURCES_DIR  # what a `dataset nuscenes`/`kitti-raw` run prepared
     for p in [*paths, calib]:
-        if p is not None and (
-            Path(p).resolve() == real_out or real_out in Path(p).resolve().parents
-        ):
+        rp = None if p is None else Path(p).resolve()
+        if rp is not None and (rp == sources or sources in rp.parents):
+            continue
+        if rp is not None and (rp == real_out or real_out in rp.parents):
             # files would be replaced by copies of themselves (and then hashed and deleted)
             raise OutputError(f"input {p} is inside the dataset folder {out_dir}")
     state = _dataset_state(out)
@@ -370,6 +390,8 @@ def build_dataset(
 
     settings = BuildSettings(
         sparse_format=sparse_format,
+        sparse_name=sparse_name,
+        gt_name=gt_name,
         link=bool(link),
         source=str(source),
         params=params,

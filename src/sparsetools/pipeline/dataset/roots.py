@@ -1,0 +1,245 @@
+"""From a dataset root to a training dataset in one command: nuScenes, KITTI raw, KITTI depth
+completion.
+
+Each route prepares what the dataset needs in ``DATASET/.sources/<stage>/`` (camera images at
+the maps' resolution, projected radar / LiDAR maps, beams, a JBF expansion), every stage an
+ordinary sparsetools output folder with its own record, so a rerun redoes only what changed,
+then calls :func:`~sparsetools.pipeline.dataset.build.build_dataset` on them. Splits go by
+sequence: the nuScenes scene, the KITTI drive (or the tree's own train/val).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import replace
+from pathlib import Path
+
+from ...errors import FormatError, ParameterError
+from ..batch import Batch, RunSummary
+from .build import SOURCES_DIR, build_dataset
+
+__all__ = ["build_kitti_dc_dataset", "build_kitti_raw_dataset", "build_nuscenes_dataset"]
+
+log = logging.getLogger(__name__)
+
+
+def _stage(out: Path, name: str) -> Path:
+    return Path(out) / SOURCES_DIR / name
+
+
+def _quiet(batch: Batch) -> Batch:
+    """Stages run with the user's executor and policy but never --overwrite of their own."""
+    return replace(batch, as_json=False)
+
+
+def build_nuscenes_dataset(
+    root: str | os.PathLike,
+    out_dir: str | os.PathLike,
+    *,
+    version: str = "v1.0-mini",
+    camera: str = "CAM_FRONT",
+    sensor: str = "RADAR_FRONT",
+    sweeps: int = 5,
+    resize: float | None = None,
+    crop: tuple[int, int, int, int] | None = None,
+    gt_sensor: str | None = "LIDAR_TOP",
+    gt_sweeps: int = 1,
+    jbf: bool = False,
+    scenes: tuple[str, ...] | None = None,
+    night: str = "any",
+    split: str | None = None,
+    seed: int = 0,
+    sparse_format: str = "both",
+    batch: Batch | None = None,
+) -> RunSummary:
+    """nuScenes samples -> dataset: one camera's image (resized / cropped, with its adjusted
+    intrinsics), the sparse input from ``sensor`` (radar: ``sweeps`` merged, devkit filters;
+    optionally expanded by the JBF, whose confidence map is stored too), ground truth from
+    ``gt_sensor`` (``None``: none), splits by scene.
+
+    The radar paper's setting: ``camera="CAM_FRONT", resize=0.5, crop=(100, 0, 350, 800)``
+    (1600x900 -> 800x450, the top 100 rows cut).
+    """
+    from ...io.sources import nuscenes_frames
+    from ..camera_images import CameraImageSettings, run_camera_images
+    from ..project import ProjectSettings, project_tasks, run_project
+
+    batch = batch or Batch()
+    if jbf and not sensor.upper().startswith("RADAR"):
+        raise ParameterError("--jbf expands radar: give a RADAR_* --sensor", param="jbf")
+    out = Path(out_dir)
+    common = {"version": version, "camera": camera, "scenes": scenes, "night": night}
+    frames = nuscenes_frames(root, sensor=sensor, sweeps=sweeps, **common)
+    if gt_sensor is not None:
+        gt_frames = nuscenes_frames(root, sensor=gt_sensor, sweeps=gt_sweeps, **common)
+        have = {f.key for f in gt_frames}
+        lost = [f for f in frames if f.key not in have]
+        if lost:
+            log.warning("%d sample(s) lack %s and are left out", len(lost), gt_sensor)
+        frames = [f for f in frames if f.key in have]
+        gt_frames = [f for f in gt_frames if f.key in {f.key for f in frames}]
+    stage_batch = _quiet(batch)
+    run_camera_images(
+        frames, _stage(out, "images"), CameraImageSettings(resize=resize, crop=crop),
+        batch=stage_batch,
+    )  # fmt: skip
+    settings = ProjectSettings(resize=resize, crop=crop, camera=camera)
+    run_project(
+        project_tasks(frames, _stage(out, "sparse"), settings),
+        _stage(out, "sparse"), settings, batch=stage_batch, inputs=[root],
+    )  # fmt: skip
+    gt = None
+    if gt_sensor is not None:
+        run_project(
+            project_tasks(gt_frames, _stage(out, "gt"), settings),
+            _stage(out, "gt"), settings, batch=stage_batch, inputs=[root],
+        )  # fmt: skip
+        gt = _stage(out, "gt")
+    sparse, confidence, source = _stage(out, "sparse"), None, sensor.lower()
+    if jbf:
+        from ..jbf_expand import JbfSettings, run_jbf_expand
+
+        run_jbf_expand(
+            [_stage(out, "sparse")], image=_stage(out, "images"),
+            calib=_stage(out, "images") / "calib", out_dir=_stage(out, "jbf"),
+            settings=JbfSettings(), batch=stage_batch,
+        )  # fmt: skip
+        sparse = confidence = _stage(out, "jbf")
+        source = f"{sensor.lower()}-jbf"
+    return build_dataset(
+        out,
+        rgb=_stage(out, "images"),
+        sparse=sparse,
+        gt=gt,
+        confidence=confidence,
+        calib=_stage(out, "images") / "calib",
+        split=split,
+        seed=seed,
+        sparse_format=sparse_format,
+        source=source,
+        params={
+            "route": "nuscenes",
+            "version": version,
+            "camera": camera,
+            "sensor": sensor,
+            "sweeps": sweeps,
+            "resize": resize,
+            "crop": list(crop) if crop else None,
+            "gt": gt_sensor,
+            "jbf": jbf,
+        },  # fmt: skip
+        batch=batch,
+    )
+
+
+def build_kitti_raw_dataset(
+    root: str | os.PathLike,
+    out_dir: str | os.PathLike,
+    *,
+    beams: int | None = 4,
+    camera: int = 2,
+    split: str | None = None,
+    split_files=None,
+    seed: int = 0,
+    sparse_format: str = "both",
+    batch: Batch | None = None,
+) -> RunSummary:
+    """KITTI raw drives (a drive, a date folder or a root of dates) -> dataset: the camera
+    image, the projected scan kept at ``beams`` beams as input (``None``: the full scan), the
+    full-scan projection as ground truth; splits by drive, or Eigen / Eigen-Zhou split files."""
+    from ...io.sources import Frame, cloud_frames, kitti_raw_index
+    from ..beams import BeamsSettings, run_beams
+    from ..project import ProjectSettings, project_tasks, run_project
+
+    from ...io.sources import is_kitti_raw
+
+    batch = batch or Batch()
+    out = Path(out_dir)
+    if not is_kitti_raw(root):
+        raise FormatError(
+            f"{root}: not a KITTI raw drive, date folder or root (no <drive>/velodyne_points/"
+            "data/ or image_0N/data/ with the calibration pair)"
+        )
+    stage_batch = _quiet(batch)
+    frames = cloud_frames([root], camera=camera)
+    settings = ProjectSettings(camera=camera)
+    run_project(
+        project_tasks(frames, _stage(out, "gt"), settings), _stage(out, "gt"), settings,
+        batch=stage_batch, inputs=[root],
+    )  # fmt: skip
+    sparse = _stage(out, "gt")
+    if beams is not None:
+        run_beams(frames, _stage(out, f"beams{beams}"), BeamsSettings(n=(beams,)),
+                  batch=stage_batch, inputs=[root])  # fmt: skip
+        raw = kitti_raw_index(root, what="cloud", camera=camera)
+        beam_frames = [
+            Frame(key=f.key, cloud=f.key.path(_stage(out, f"beams{beams}"), ".bin"),
+                  calib=raw.calib[f.key], image=f.image)
+            for f in frames
+        ]  # fmt: skip
+        sparse = _stage(out, f"sparse{beams}")
+        run_project(project_tasks(beam_frames, sparse, settings), sparse, settings,
+                    batch=stage_batch, inputs=[])  # fmt: skip
+    return build_dataset(
+        out,
+        rgb=root,
+        sparse=sparse,
+        gt=_stage(out, "gt"),
+        split=split,
+        split_files=split_files,
+        seed=seed,
+        sparse_format=sparse_format,
+        source="lidar" if beams is None else f"lidar-{beams}beam",
+        camera=camera,
+        params={"route": "kitti-raw", "beams": beams},
+        batch=batch,
+    )
+
+
+def build_kitti_dc_dataset(
+    root: str | os.PathLike,
+    out_dir: str | os.PathLike,
+    *,
+    raw: str | os.PathLike | None = None,
+    sparse_name: str | None = None,
+    gt_name: str | None = None,
+    selection: bool = False,
+    camera: int = 2,
+    sparse_format: str = "both",
+    batch: Batch | None = None,
+) -> RunSummary:
+    """A KITTI depth-completion root -> dataset, split as the tree splits it.
+
+    ``root`` holds ``data_depth_velodyne/`` and ``data_depth_annotated/`` (or is one of them
+    with ``{train,val}/<drive>/proj_depth/``); images come from the KITTI raw tree ``raw``.
+    ``selection``: the 1,000-frame ``depth_selection/val_selection_cropped`` set instead, with
+    its own images and intrinsics (split ``val_selection``). Frames without ground truth (the
+    first and last 5 of each drive) are counted in the summary's ``unmatched``.
+    """
+    root = Path(root)
+    if selection:
+        sel = root / "depth_selection" / "val_selection_cropped"
+        sel = sel if sel.is_dir() else root
+        return build_dataset(
+            out_dir, rgb=sel, sparse=sel, gt=sel, calib=sel, split="tree",
+            sparse_format=sparse_format, source="lidar", camera=camera,
+            params={"route": "kitti-dc", "selection": True}, batch=batch,
+        )  # fmt: skip
+    from ...io.sources.kitti import is_kitti_depth_completion
+
+    if raw is None:
+        raise ParameterError("give the KITTI raw tree holding the images", param="raw")
+    sparse = root / "data_depth_velodyne" if (root / "data_depth_velodyne").is_dir() else root
+    if not is_kitti_depth_completion(sparse):
+        raise FormatError(
+            f"{root}: not a KITTI depth-completion tree (no data_depth_velodyne/ nor "
+            "{train,val}/<drive>/proj_depth/)"
+        )
+    gt = root / "data_depth_annotated" if (root / "data_depth_annotated").is_dir() else root
+    return build_dataset(
+        out_dir, rgb=raw, sparse=sparse, gt=gt, split="tree", sparse_name=sparse_name,
+        gt_name=gt_name, sparse_format=sparse_format, camera=camera,
+        source=f"lidar-{sparse_name}" if sparse_name else "lidar",
+        params={"route": "kitti-dc", "sparse": sparse_name or "velodyne_raw"}, batch=batch,
+    )  # fmt: skip
