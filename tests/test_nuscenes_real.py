@@ -40,7 +40,7 @@ def test_radar_key_frame_lands_in_the_image_with_the_radar_time_pose(tree):
     from sparsetools.io.sources import nuscenes_frames
     from sparsetools.ops.projection import nuscenes_T_cam_from_sensor
 
-    root, files = tree
+    root, _ = tree
     (frame,) = nuscenes_frames(root, sensor="RADAR_FRONT", camera="CAM_FRONT", sweeps=1)
     assert frame.key.sequence == "scene-0061" and frame.key.frame.startswith("ca9a282c")
     points = read_radar_pcd(frame.cloud, filters=None)

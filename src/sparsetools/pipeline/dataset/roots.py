@@ -128,7 +128,7 @@ def build_nuscenes_dataset(
             "crop": list(crop) if crop else None,
             "gt": gt_sensor,
             "jbf": jbf,
-        },  # fmt: skip
+        },
         batch=batch,
     )
 
@@ -148,11 +148,9 @@ def build_kitti_raw_dataset(
     """KITTI raw drives (a drive, a date folder or a root of dates) -> dataset: the camera
     image, the projected scan kept at ``beams`` beams as input (``None``: the full scan), the
     full-scan projection as ground truth; splits by drive, or Eigen / Eigen-Zhou split files."""
-    from ...io.sources import Frame, cloud_frames, kitti_raw_index
+    from ...io.sources import Frame, cloud_frames, is_kitti_raw, kitti_raw_index
     from ..beams import BeamsSettings, run_beams
     from ..project import ProjectSettings, project_tasks, run_project
-
-    from ...io.sources import is_kitti_raw
 
     batch = batch or Batch()
     out = Path(out_dir)
