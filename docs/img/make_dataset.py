@@ -16,7 +16,7 @@ import numpy as np
 from click.testing import CliRunner
 
 from sparsetools.cli.main import cli
-from sparsetools.io.dataset import DatasetReader
+from sparsetools.io.dataset_reader import DatasetReader
 from sparsetools.ops.colormap import colorize_depth, side_by_side
 from sparsetools.ops.viz import colorbar, depth_panels, label_panel
 
