@@ -197,3 +197,18 @@ def test_split_file_option_and_link(inputs, tmp_path):
     assert (out / "rgb" / "s1" / "0000.png").stat().st_ino != src.stat().st_ino
     assert (out / "rgb" / "s1" / "0000.png").read_bytes() == src.read_bytes()
     assert DatasetReader(out).split("holdout").ids == ["s3/0001"]
+
+
+def test_verify_reports_inputs_changed_since_the_build(inputs, tmp_path):
+    out = tmp_path / "ds"
+    res = run(build_args(inputs, out))
+    assert res.exit_code == 0, res.output
+    assert run(["dataset", "verify", out]).exit_code == 0
+    sparse = sorted((inputs / "sparse").rglob("*.png"))[0]
+    sparse.write_bytes(sparse.read_bytes()[:-1] + b"\x00")  # the user's input changed
+    res = run(["dataset", "verify", out])
+    assert res.exit_code == 1 and "changed since the build" in res.stdout
+    assert sparse.name.split(".")[0] in res.stdout
+    # rebuilding makes the dataset current again
+    assert run(build_args(inputs, out)).exit_code == 0
+    assert run(["dataset", "verify", out]).exit_code == 0
