@@ -7,7 +7,8 @@ Every batch command enumerates its inputs here, as :class:`Frame` records keyed 
   ``gt``, ``depth``, ``confidence``, ``calib``) into a :class:`FileIndex`, recognising the
   layout: a file, a folder tree (``DIR/<sequence>/<frame>.ext``), a folder written by
   sparsetools (read through its record), a KITTI raw drive / date folder / root of dates, a
-  KITTI object split, a KITTI depth-completion tree, a ``val_selection_cropped`` folder;
+  KITTI object split, a KITTI depth-completion tree, a ``val_selection_cropped`` folder, a
+  ``synth-scene --video`` folder (with its poses);
 - :func:`cloud_frames` builds the frames of point-cloud commands (``project``, ``beams``)
   from clouds plus an optional calibration and image (shared, or per frame by key);
 - :func:`nuscenes_frames` builds frames from nuScenes tables;
@@ -37,6 +38,7 @@ from .kitti import (
     kitti_val_selection_index,
 )
 from .nuscenes import nuscenes_frames
+from .video import VIDEO_ROLES, is_video_folder, video_index
 from .tree import (
     CALIB_SUFFIXES,
     CLOUD_SUFFIXES,
@@ -117,6 +119,8 @@ def index_input(
     suffixes, recorded_role = ROLES[role]
     p = Path(path)
     if p.is_dir():
+        if is_video_folder(p) and role in VIDEO_ROLES:
+            return video_index(p, role, option=option)
         if role in ("cloud", "image") and is_kitti_raw(p):
             return kitti_raw_index(p, what=role, camera=camera, option=option)
         if role in ("sparse", "gt", "depth", "confidence") and is_kitti_depth_completion(p):

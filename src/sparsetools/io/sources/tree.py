@@ -68,6 +68,10 @@ class FileIndex:
         Calibration the layout provides per frame (KITTI raw date folder, KITTI object).
     images : dict of FrameKey -> Path
         Camera image the layout provides per frame (KITTI raw, KITTI object).
+    poses : dict of FrameKey -> tuple of 16 floats
+        Row-major 4x4 ``T_world_from_cam`` the layout provides (synthetic videos).
+    times : dict of FrameKey -> float
+        Seconds, where the layout provides them.
     """
 
     root: Path
@@ -76,6 +80,8 @@ class FileIndex:
     splits: dict[FrameKey, str] = field(default_factory=dict)
     calib: dict[FrameKey, Path] = field(default_factory=dict)
     images: dict[FrameKey, Path] = field(default_factory=dict)
+    poses: dict[FrameKey, tuple] = field(default_factory=dict)
+    times: dict[FrameKey, float] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return len(self.files)

@@ -144,6 +144,8 @@ class _Inputs:
     calib: dict[FrameKey, str | None]
     unmatched: dict[str, int]
     splits: dict[FrameKey, str]
+    poses: dict[FrameKey, tuple] = field(default_factory=dict)
+    times: dict[FrameKey, float] = field(default_factory=dict)
 
 
 def _index(rgb, sparse, gt, confidence, calib, *, names=(None, None), camera=2) -> _Inputs:
@@ -214,6 +216,7 @@ def _index(rgb, sparse, gt, confidence, calib, *, names=(None, None), camera=2) 
     return _Inputs(
         keys, rgb_files, matched_sparse, sparse_is_table, sparse_path, extra, calib_of,
         unmatched, {k: v for k, v in splits.items() if k in set(keys)},
+        dict(rgb_index.poses), dict(rgb_index.times),
     )  # fmt: skip
 
 
@@ -490,6 +493,8 @@ def _task(
         gt=extra.get("gt"),
         confidence=extra.get("confidence"),
         calib=cal,
+        timestamp=inputs.times.get(k),
+        pose=inputs.poses.get(k),
         inputs_desc=tuple(sorted(desc.items())),
     )
     outputs = {"rgb": out / f"rgb/{fid}{rgb_file.suffix.lower()}"}
