@@ -38,7 +38,6 @@ from .kitti import (
     kitti_val_selection_index,
 )
 from .nuscenes import nuscenes_frames
-from .video import VIDEO_ROLES, is_video_folder, video_index
 from .tree import (
     CALIB_SUFFIXES,
     CLOUD_SUFFIXES,
@@ -49,6 +48,7 @@ from .tree import (
     index_tree,
     match_keys,
 )
+from .video import VIDEO_ROLES, is_video_folder, video_index
 
 __all__ = [
     "CALIB_SUFFIXES",
