@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import click
@@ -20,27 +19,8 @@ from .options import (
     positive,
     ratio_option,
     seed_option,
+    value_or_range,
 )
-
-
-def _value_or_range(ctx, param, value):
-    """``V`` (fixed) or ``LOW,HIGH`` (sampled) with 0 < LOW <= HIGH."""
-    if value is None:
-        return None
-    try:
-        parts = [float(v) for v in value.split(",")]
-    except ValueError:
-        raise click.BadParameter(f"expected V or LOW,HIGH as numbers, got {value!r}") from None
-    if len(parts) == 1:
-        parts = parts * 2
-    if len(parts) != 2:
-        raise click.BadParameter(f"expected V or LOW,HIGH, got {value!r}")
-    lo, hi = parts
-    if not (math.isfinite(lo) and math.isfinite(hi)) or lo <= 0:
-        raise click.BadParameter(f"values must be finite and > 0, got {value!r}")
-    if lo > hi:
-        raise click.BadParameter(f"range is inverted ({lo} > {hi})")
-    return lo, hi
 
 
 @click.command("defocus-synth")
@@ -70,7 +50,7 @@ def _value_or_range(ctx, param, value):
 )
 @click.option(
     "--f-number",
-    callback=_value_or_range,
+    callback=value_or_range(),
     metavar="F|LOW,HIGH",
     help="f-number F_n (A = f / F_n), or a range sampled log-uniformly per image "
     "[default: the preset's].",
@@ -83,7 +63,7 @@ def _value_or_range(ctx, param, value):
 )
 @click.option(
     "--focus-distance",
-    callback=_value_or_range,
+    callback=value_or_range(),
     default="0.7",
     show_default=True,
     metavar="D|LOW,HIGH",

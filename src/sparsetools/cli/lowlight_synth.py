@@ -24,30 +24,11 @@ from .options import (
     positive_pair,
     ratio_option,
     seed_option,
+    value_or_range,
 )
 
 #: ELD noise tables shipped with the package, and "random" (one per image).
 CAMERAS = noise_cameras()
-
-
-def _count_range(ctx, param, value):
-    """``N`` or ``MIN,MAX`` with 1 <= MIN <= MAX."""
-    if value is None:
-        return None
-    try:
-        parts = [int(v) for v in value.split(",")]
-    except ValueError:
-        raise click.BadParameter(f"expected N or MIN,MAX as integers, got {value!r}") from None
-    if len(parts) == 1:
-        parts = parts * 2
-    if len(parts) != 2:
-        raise click.BadParameter(f"expected N or MIN,MAX, got {value!r}")
-    lo, hi = parts
-    if lo > hi:
-        raise click.BadParameter(f"range is inverted ({lo} > {hi})")
-    if lo < 1:
-        raise click.BadParameter(f"flare count must be >= 1, got {value!r}")
-    return lo, hi
 
 
 @click.command("lowlight-synth")
@@ -91,7 +72,7 @@ def _count_range(ctx, param, value):
 )
 @click.option(
     "--flare-count",
-    callback=_count_range,
+    callback=value_or_range(int, minimum=1, strict=False),
     default="1,20",
     show_default=True,
     metavar="N|MIN,MAX",

@@ -100,6 +100,37 @@ def float_pair(sep: str = ","):
     return parse
 
 
+def value_or_range(cast=float, *, minimum: float = 0.0, strict: bool = True):
+    """Callback parsing ``V`` (fixed) or ``LOW,HIGH`` (sampled) into ``(low, high)`` with
+    ``minimum < LOW <= HIGH`` (``<=`` minimum when not ``strict``), all finite."""
+    import math
+
+    kind = "integers" if cast is int else "numbers"
+
+    def parse(ctx, param, value):
+        if value is None:
+            return None
+        try:
+            parts = [cast(v) for v in value.split(",")]
+        except ValueError:
+            raise click.BadParameter(f"expected V or LOW,HIGH as {kind}, got {value!r}") from None
+        if len(parts) == 1:
+            parts = parts * 2
+        if len(parts) != 2:
+            raise click.BadParameter(f"expected V or LOW,HIGH, got {value!r}")
+        lo, hi = parts
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            raise click.BadParameter(f"values must be finite, got {value!r}")
+        if (lo <= minimum) if strict else (lo < minimum):
+            bound = f"> {minimum:g}" if strict else f">= {minimum:g}"
+            raise click.BadParameter(f"values must be {bound}, got {value!r}")
+        if lo > hi:
+            raise click.BadParameter(f"range is inverted ({lo} > {hi})")
+        return lo, hi
+
+    return parse
+
+
 def int_list(ctx, param, value):
     """Parse ``5,7,9,11`` (or several values) into a tuple of ints."""
     if value is None or value == ():

@@ -301,16 +301,9 @@ def decode_confidence_bytes(data: bytes, suffix: str, *, source: str = "confiden
         with np.errstate(over="ignore", invalid="ignore"):
             return _load_npy(data, source).astype(np.float32, copy=False)
     if suffix == ".png":
-        from .image import check_pixel_count, image_header_size, imdecode_captured, import_cv2
+        from .image import decode_image_bytes
 
-        cv2 = import_cv2()
-        size = image_header_size(data)
-        if size is not None:
-            check_pixel_count(*size, f"{source}: declared size")
-        img, detail = imdecode_captured(data, cv2.IMREAD_UNCHANGED, source=source)
-        if img is None:
-            why = f": {detail}" if detail else ""
-            raise FormatError(f"{source}: cannot decode confidence PNG (corrupt?){why}")
+        img = decode_image_bytes(data, source=source, what="confidence PNG")
         if img.ndim != 2:
             raise FormatError(f"{source}: a confidence PNG must be single-channel")
         scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(img.dtype)

@@ -17,6 +17,7 @@ __all__ = [
     "MAX_IMAGE_PIXELS",
     "check_pixel_count",
     "decode_depth_png",
+    "decode_image_bytes",
     "encode_depth_png",
     "image_header_size",
     "image_size_of",
@@ -166,17 +167,31 @@ def import_cv2():
     return cv2
 
 
-def _decode(data: bytes, path: Path, what: str, flags: int) -> np.ndarray:
+def decode_image_bytes(data: bytes, *, source, what: str = "image", flags: int | None = None):
+    """Decode PNG/JPEG bytes as stored (``cv2.IMREAD_UNCHANGED`` unless ``flags``), after
+    checking the declared size against the pixel limit (decompression bombs).
+
+    Raises
+    ------
+    FormatError
+        Empty data, a size above the limit, or bytes that do not decode.
+    """
     if not data:
-        raise FormatError(f"{path}: empty data, expected a {what}")
+        raise FormatError(f"{source}: empty data, expected a {what}")
     size = image_header_size(data)
     if size is not None:
-        check_pixel_count(*size, f"{path}: declared size")
-    img, detail = imdecode_captured(data, flags, source=str(path))
+        check_pixel_count(*size, f"{source}: declared size")
+    if flags is None:
+        flags = import_cv2().IMREAD_UNCHANGED
+    img, detail = imdecode_captured(data, flags, source=str(source))
     if img is None:
         why = f": {detail}" if detail else ""
-        raise FormatError(f"{path}: cannot decode {what} (corrupt or unsupported format){why}")
+        raise FormatError(f"{source}: cannot decode {what} (corrupt or unsupported format){why}")
     return img
+
+
+def _decode(data: bytes, path: Path, what: str, flags: int) -> np.ndarray:
+    return decode_image_bytes(data, source=path, what=what, flags=flags)
 
 
 def imdecode_captured(data: bytes, flags: int, *, source: str) -> tuple[np.ndarray | None, str]:

@@ -132,19 +132,15 @@ def _calibration(inp: AccumulateInput, image_size) -> Calibration:
 
 def _read_mask(path: str, calib: Calibration) -> np.ndarray:
     """(H, W) bool: non-zero pixels of a mask PNG (uint8 0/255 or any single channel)."""
-    from ..io.image import check_pixel_count, image_header_size, imdecode_captured, import_cv2
+    from ..io.image import decode_image_bytes
 
     try:
         data = Path(path).read_bytes()
     except OSError as exc:
         raise FormatError(f"{path}: cannot read mask ({exc.strerror or exc})") from exc
-    size = image_header_size(data)
-    if size is not None:
-        check_pixel_count(*size, f"{path}: declared size")
-    img, detail = imdecode_captured(data, import_cv2().IMREAD_UNCHANGED, source=path)
-    if img is None or img.ndim != 2:
-        why = "not a single-channel PNG" if img is not None else f"cannot decode ({detail})"
-        raise FormatError(f"{path}: moving-object mask {why}")
+    img = decode_image_bytes(data, source=path, what="moving-object mask")
+    if img.ndim != 2:
+        raise FormatError(f"{path}: moving-object mask not a single-channel PNG")
     if (img.shape[1], img.shape[0]) != calib.size:
         w, h = calib.size
         raise FormatError(f"{path}: mask is {img.shape[1]}x{img.shape[0]}, the map {w}x{h}")

@@ -137,13 +137,13 @@ def radar_frames(paths: list[str | os.PathLike]) -> list[Frame]:
     ``.png``) is there too: those are the single sweeps of a merged multi-sweep frame (the
     layout ``synth-scene`` writes). A folder written by ``project`` is read through its record.
     """
-    from ..io.sources import index_input
+    from ..io.sources import index_input, merge_frames
     from ..io.sources.tree import index_tree
 
     if not paths:
         raise ParameterError("no radar inputs given")
-    frames: dict[FrameKey, Frame] = {}
-    for p in map(Path, paths):
+
+    def index(p: Path):
         if p.is_file() and p.suffix.lower() not in RADAR_SUFFIXES:
             raise FormatError(
                 f"{p}: not a radar input (expected a depth .png or a nuScenes radar .pcd)"
@@ -151,14 +151,11 @@ def radar_frames(paths: list[str | os.PathLike]) -> list[Frame]:
         if p.is_dir() and not any(p.iterdir()):
             raise FormatError(f"{p}: no radar depth PNG or .pcd file in this folder")
         try:
-            index = index_tree(p, RADAR_SUFFIXES, option="RADAR", role="depth")
+            return index_tree(p, RADAR_SUFFIXES, option="RADAR", role="depth")
         except FormatError:
-            index = index_input(p, "depth", option="RADAR")  # a KITTI depth-completion tree
-        for key, f in index.files.items():
-            if key in frames:
-                raise FormatError(f"{frames[key].depth} and {f} are the same frame '{key}'")
-            frames[key] = Frame(key=key, depth=f)
-    return [frames[k] for k in sorted(frames)]
+            return index_input(p, "depth", option="RADAR")  # a KITTI depth-completion tree
+
+    return merge_frames((index(p) for p in map(Path, paths)), "depth")
 
 
 @dataclass(frozen=True)

@@ -52,21 +52,18 @@ def image_frames(paths, *, option: str = "IMAGE") -> list[Frame]:
         A path does not exist, a folder holds no image, a file is not a PNG/JPEG, or two
         files are the same frame.
     """
-    from ..io.sources import index_input
+    from ..io.sources import index_input, merge_frames
 
-    frames: dict[FrameKey, Frame] = {}
     paths = list(paths)
     if not paths:
         raise ParameterError("no images given")
-    for p in map(Path, paths):
+
+    def index(p: Path):
         if p.is_file() and p.suffix.lower() not in IMAGE_SUFFIXES:
             raise FormatError(f"{p}: not a PNG or JPEG image")
-        index = index_input(p, "image", option=option)
-        for key, f in index.files.items():
-            if key in frames:
-                raise FormatError(f"{frames[key].image} and {f} are the same frame '{key}'")
-            frames[key] = Frame(key=key, image=f)
-    return [frames[k] for k in sorted(frames)]
+        return index_input(p, "image", option=option)
+
+    return merge_frames((index(p) for p in map(Path, paths)), "image")
 
 
 @dataclass(frozen=True)

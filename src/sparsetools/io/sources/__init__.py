@@ -72,6 +72,7 @@ __all__ = [
     "kitti_raw_drives",
     "kitti_raw_index",
     "match_keys",
+    "merge_frames",
     "nuscenes_frames",
 ]
 
@@ -194,6 +195,32 @@ def attach(
     for f in frames:
         out.append(replace(f, **{field: found.get(f.key) or f.key.path(p, suffix)}))
     return out, len(frames) - len(found)
+
+
+def merge_frames(indexes, field: str) -> list[Frame]:
+    """Frames of several indexed inputs, each file in ``Frame.<field>``, sorted by key.
+
+    Parameters
+    ----------
+    indexes : iterable of FileIndex
+        One index per given path (see :func:`index_input`).
+    field : str
+        The :class:`Frame` field the files go in (``"image"``, ``"depth"``, ...).
+
+    Raises
+    ------
+    FormatError
+        Two inputs hold the same frame.
+    """
+    frames: dict[FrameKey, Frame] = {}
+    for index in indexes:
+        for key, f in index.files.items():
+            if key in frames:
+                raise FormatError(
+                    f"{getattr(frames[key], field)} and {f} are the same frame '{key}'"
+                )
+            frames[key] = Frame(key=key, **{field: f})
+    return [frames[k] for k in sorted(frames)]
 
 
 def cloud_frames(

@@ -22,23 +22,20 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-
 from ..._version import __version__
 from ...errors import FormatError, OutputError, ParameterError
 from ...io.atomic import TMP_PREFIX
 from ...io.dataset import (
     MANIFEST_NAME,
     MANIFEST_SCHEMA,
-    PART_SCHEMA,
     SPARSE_DIR,
-    _brief,
     read_manifest,
     read_sparse_part,
     resolve_in_dataset,
     write_manifest,
     write_sparse_part,
 )
+from ...io.points_table import read_points_table, sparse_part_table
 from ...io.provenance import RECORD_DIR
 from ...io.sources import FrameKey, index_input, is_shared_calibration, match_keys
 from ..batch import Batch, RunSummary
@@ -53,7 +50,6 @@ __all__ = ["SPARSE_FORMATS", "BuildSettings", "build_dataset"]
 log = logging.getLogger(__name__)
 
 RGB_SUFFIXES = (".png", ".jpg", ".jpeg")
-DEPTH_SUFFIXES = (".png", ".npy")
 CALIB_SUFFIXES = (".txt", ".json")
 SPARSE_FORMATS = ("png", "parquet", "both")
 #: jbf-expand names its confidence maps ``<stem>_conf.png``; they match frame ``<stem>``.
@@ -65,41 +61,6 @@ _PART_RE = re.compile(r"^part-(\d{5,})\.parquet$")
 
 
 # -- input indexing ----------------------------------------------------------------------------------
-def _read_points_table(path: Path) -> dict[FrameKey, tuple]:
-    """A Parquet table of sparse points (one row per frame) -> key -> (u, v, depth, h, w)."""
-    import pyarrow.parquet as pq
-
-    try:
-        table = pq.read_table(path)
-    except Exception as exc:
-        raise FormatError(f"{path}: cannot read the sparse-points table ({_brief(exc)})") from exc
-    id_col = next(
-        (c for c in ("id", "frame_id", "stem", "frame", "name") if c in table.column_names), None
-    )
-    if id_col is None or not {"u", "v", "depth"} <= set(table.column_names):
-        raise FormatError(f"{path}: a sparse-points table needs an id column and u, v, depth lists")
-    ids = [str(x) for x in table.column(id_col).to_pylist()]
-    hs = table.column("height").to_pylist() if "height" in table.column_names else [None] * len(ids)
-    ws = table.column("width").to_pylist() if "width" in table.column_names else [None] * len(ids)
-    cols = {}
-    for name in ("u", "v", "depth"):
-        arr = table.column(name).combine_chunks()
-        cols[name] = (arr.offsets.to_numpy(), arr.values.to_numpy(zero_copy_only=False))
-    out: dict[FrameKey, tuple] = {}
-    for i, fid in enumerate(ids):
-        if Path(fid).suffix.lower() in DEPTH_SUFFIXES:
-            fid = fid[: -len(Path(fid).suffix)]
-        try:
-            key = FrameKey.parse(fid)
-        except ParameterError as exc:
-            raise FormatError(f"{path}: {exc}") from exc
-        if key in out:
-            raise FormatError(f"{path}: frame '{key}' appears twice")
-        u, v, d = (vals[off[i] : off[i + 1]] for off, vals in cols.values())
-        out[key] = (np.asarray(u), np.asarray(v), np.asarray(d), hs[i], ws[i])
-    return out
-
-
 def _confidence_index(path, option: str) -> dict[FrameKey, Path]:
     """Confidence maps by frame: ``<frame>_conf.*`` (jbf-expand's naming) matches ``<frame>``."""
     index = index_input(path, "confidence", option=option).files
@@ -166,7 +127,7 @@ def _index(rgb, sparse, gt, confidence, calib, *, names=(None, None), camera=2) 
         except FormatError:
             table_file = sparse_path / "sparse.parquet"
     if table_file is not None:
-        sparse_in = _read_points_table(table_file)
+        sparse_in = read_points_table(table_file)
         sparse_is_table = True
         sparse_path = table_file
         splits = {}
@@ -638,7 +599,7 @@ def _finalize(
     for start in range(0, len(with_points), frames_per_part):
         ids = with_points[start : start + frames_per_part]
         rel = new_part(
-            _points_table(
+            sparse_part_table(
                 ids,
                 [points_of[i] for i in ids],
                 [(by_id[i]["height"], by_id[i]["width"]) for i in ids],
@@ -663,37 +624,6 @@ def _finalize(
     result = _counts(rows)
     result["new_parts"] = len(written)
     return result
-
-
-def _points_table(ids: list[str], points: list[tuple], sizes: list[tuple[int, int]]):
-    """A :data:`PART_SCHEMA` table from per-frame (u, v, depth) arrays (no per-point Python)."""
-    import pyarrow as pa
-
-    lengths = np.array([len(p[0]) for p in points], dtype=np.int64)
-    offsets = np.concatenate([[0], np.cumsum(lengths)])
-    if offsets[-1] > np.iinfo(np.int32).max:
-        raise ParameterError("too many points for one part: lower frames_per_part")
-    offsets = pa.array(offsets.astype(np.int32))
-
-    def column(i, dtype, type_):
-        values = (
-            np.concatenate([np.asarray(p[i], dtype) for p in points])
-            if points
-            else np.zeros(0, dtype)
-        )
-        return pa.ListArray.from_arrays(offsets, pa.array(values, type=type_))
-
-    return pa.table(
-        {
-            "id": pa.array(ids, pa.string()),
-            "u": column(0, np.uint16, pa.uint16()),
-            "v": column(1, np.uint16, pa.uint16()),
-            "depth": column(2, np.float32, pa.float32()),
-            "height": pa.array([h for h, _ in sizes], pa.int32()),
-            "width": pa.array([w for _, w in sizes], pa.int32()),
-        },
-        schema=PART_SCHEMA,
-    )
 
 
 def _counts(rows: list[dict]) -> dict:

@@ -141,14 +141,10 @@ def _verify_row(root: Path, r: dict, check_hashes: bool) -> tuple[list[str], np.
         return arr
 
     def rgb_decode(data, rel):
-        from ...io.image import check_pixel_count, image_header_size, imdecode_captured, import_cv2
+        from ...io.image import decode_image_bytes
 
-        cv2 = import_cv2()
-        size = image_header_size(data)
-        if size is not None:
-            check_pixel_count(*size, "declared size")
-        img, _ = imdecode_captured(data, cv2.IMREAD_UNCHANGED, source=rel)
-        if img is None or img.dtype != np.uint8:
+        img = decode_image_bytes(data, source=rel)
+        if img.dtype != np.uint8:
             raise FormatError("not an 8-bit image")
         return img
 

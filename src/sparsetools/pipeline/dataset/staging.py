@@ -50,16 +50,9 @@ def _read_bytes(path: str, what: str) -> bytes:
 
 def _decode_rgb_size(data: bytes, source: str) -> tuple[int, int]:
     """Decode an 8-bit colour image (to prove it is readable); return (width, height)."""
-    from ...io.image import check_pixel_count, image_header_size, imdecode_captured, import_cv2
+    from ...io.image import decode_image_bytes
 
-    cv2 = import_cv2()
-    size = image_header_size(data)
-    if size is not None:
-        check_pixel_count(*size, f"{source}: declared size")
-    img, detail = imdecode_captured(data, cv2.IMREAD_UNCHANGED, source=source)
-    if img is None:
-        why = f": {detail}" if detail else ""
-        raise FormatError(f"{source}: cannot decode image (corrupt or unsupported format){why}")
+    img = decode_image_bytes(data, source=source)
     if img.dtype != np.uint8:
         raise FormatError(f"{source}: {img.dtype} image, expected 8-bit RGB (is this a depth map?)")
     if img.ndim == 3 and img.shape[2] not in (3, 4):
