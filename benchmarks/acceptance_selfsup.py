@@ -34,151 +34,32 @@ import argparse
 import csv
 import json
 import os
-import subprocess
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from _selfsup_data import VideoSettings, prepare_datasets, sparsetools
+
 REPO = Path(__file__).resolve().parent.parent
 BEAMS = (4, 16)
+#: Dataset key -> (images, beam count of the sparse depth).
+DATASETS = {"day4": ("rgb", 4), "day16": ("rgb", 16), "night16": ("night", 16)}
 
 
-def sparsetools(*args, capture: bool = False) -> str:
-    cmd = [sys.executable, "-m", "sparsetools.cli.main", "-q", *map(str, args)]
-    print("$ sparsetools " + " ".join(map(str, args)), flush=True)
-    res = subprocess.run(
-        cmd,
-        check=False,
-        text=True,
-        stdout=subprocess.PIPE if capture else subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-    )
-    if res.returncode != 0:
-        sys.exit(f"command failed ({res.returncode}): {' '.join(cmd)}\n{res.stderr}")
-    return res.stdout if capture else ""
-
-
-# -- where the commands put things (the only place that knows the folder layouts) ----------------
-@dataclass(frozen=True)
-class SequenceFiles:
-    """Inputs and outputs of one video sequence."""
-
-    name: str
-    images: Path  # camera frames, <frame>.png
-    depth: Path  # true dense depth, KITTI PNG
-    calib: Path  # per-frame KITTI calib .txt
-    velodyne: Path  # 64-beam scans .bin
-    poses: Path  # KITTI odometry poses.txt (T_world_from_cam)
-    beams: dict  # N -> folder of N-beam scans (written by `beams --n 4,16 -o BEAMS/<seq>`)
-    sparse: dict  # N -> folder of projected N-beam depth maps
-    night: Path  # night frames (written by `lowlight-synth ... -o NIGHT/<seq>`)
-
-
-def sequence_files(out: Path, name: str) -> SequenceFiles:
-    video = out / "videos" / name
-    return SequenceFiles(
-        name=name,
-        images=video / "image_2",
-        depth=video / "depth_gt",
-        calib=video / "calib",
-        velodyne=video / "velodyne",
-        poses=video / "poses.txt",
-        beams={n: out / "beams" / name / f"n{n}" for n in BEAMS},
-        sparse={n: out / f"sparse{n}" / name for n in BEAMS},
-        night=out / "night" / name,
-    )
-
-
-def sequence_names(out: Path) -> list[str]:
-    return sorted(p.name for p in (out / "videos").iterdir() if (p / "image_2").is_dir())
-
-
-def link(src: Path, dst: Path) -> None:
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    if not dst.exists():
-        os.symlink(src.resolve(), dst)
-
-
-# -- data -------------------------------------------------------------------------------------------
 def prepare(out: Path, args) -> dict[str, Path]:
-    w, h = args.size
-    if not (out / "videos" / "video.json").is_file():
-        sparsetools(
-            "synth-scene", out / "videos", "--video", "--sequences", args.sequences,
-            "--frames", args.frames, "--image-size", f"{w}x{h}", "--seed", 100,
-            "--workers", args.workers, "--overwrite",
-        )  # fmt: skip
-    stage = out / "stage"
-    for name in sequence_names(out):
-        f = sequence_files(out, name)
-        if not all(d.is_dir() for d in f.beams.values()):
-            sparsetools(
-                "beams",
-                f.velodyne,
-                "--n",
-                ",".join(map(str, BEAMS)),
-                "-o",
-                f.beams[BEAMS[0]].parent,
-            )
-        for n in BEAMS:
-            sparsetools(
-                "project", f.beams[n], "--calib", f.calib, "--image", f.images, "-o", f.sparse[n]
-            )
-        sparsetools(
-            "lowlight-synth", f.images, "--depth", f.depth, "--calib", f.calib, "-o", f.night,
-            "--seed", 0, "--brightness", f"{args.night_brightness},{args.night_brightness}",
-            "--gamma", "2.0,2.0", "--no-flare",
-        )  # fmt: skip
-        link(f.images, stage / "rgb" / name)
-        link(f.night, stage / "night" / name)
-        link(f.depth, stage / "gt" / name)
-        link(f.calib, stage / "calib" / name)
-        for n in BEAMS:
-            link(f.sparse[n], stage / f"sparse{n}" / name)
-    datasets = {}
-    for key, rgb, n in (("day4", "rgb", 4), ("day16", "rgb", 16), ("night16", "night", 16)):
-        ds = out / f"dataset_{key}"
-        if not (ds / "manifest.parquet").is_file():
-            sparsetools(
-                "dataset", "build", "-o", ds, "--rgb", stage / rgb, "--sparse", stage / f"sparse{n}",
-                "--gt", stage / "gt", "--calib", stage / "calib", "--source", f"lidar-{n}beam",
-                "--split", args.split, "--seed", 0, "--sparse-format", "png",
-            )  # fmt: skip
-        attach_true_poses(ds, out)
-        datasets[key] = ds
-    return datasets
-
-
-def attach_true_poses(ds: Path, out: Path) -> None:
-    """Fill the manifest's T_world_cam from the videos' poses.txt where `dataset build` left it
-    empty (it reads poses from nuScenes only so far); pose evaluation needs it."""
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
-    from sparsetools.io.poses import read_kitti_poses
-
-    table = pq.read_table(ds / "manifest.parquet")
-    if "T_world_cam" in table.column_names and table.column("T_world_cam").null_count == 0:
-        return
-    poses = {
-        name: read_kitti_poses(sequence_files(out, name).poses) for name in sequence_names(out)
-    }
-    index = table.column("frame_index").to_pylist()
-    values = [
-        [float(v) for v in np.asarray(poses[s][i]).ravel()]
-        for s, i in zip(table.column("sequence").to_pylist(), index, strict=True)
-    ]
-    column = pa.array(values, pa.list_(pa.float64()))
-    names = table.column_names
-    table = (
-        table.set_column(names.index("T_world_cam"), "T_world_cam", column)
-        if "T_world_cam" in names
-        else table.append_column("T_world_cam", column)
+    """The three datasets (data preparation: benchmarks/_selfsup_data.py)."""
+    settings = VideoSettings(
+        size=args.size,
+        sequences=args.sequences,
+        frames=args.frames,
+        split=args.split,
+        workers=args.workers,
+        beams=BEAMS,
+        night_brightness=args.night_brightness,
     )
-    pq.write_table(table, ds / "manifest.parquet")
+    return prepare_datasets(out, settings, DATASETS)
 
 
 # -- runs -------------------------------------------------------------------------------------------
@@ -314,7 +195,6 @@ def docs_pictures(runs: Path, datasets: dict[str, Path], img: Path) -> None:
     from sparsetools.io.image import write_image
     from sparsetools.ops.colormap import colorize_depth, side_by_side
     from sparsetools.train.checkpoint import load_checkpoint, model_from_checkpoint
-    from sparsetools.train.model import model_inputs
 
     def predict(name, sample):
         ckpt = load_checkpoint(runs / name / "best.pt")
@@ -322,7 +202,7 @@ def docs_pictures(runs: Path, datasets: dict[str, Path], img: Path) -> None:
         rgb = torch.from_numpy(sample["rgb"].transpose(2, 0, 1).copy()).float()[None] / 255
         sparse = torch.from_numpy(sample["sparse"])[None, None]
         with torch.no_grad():
-            d = model.predict_depth(model_inputs(rgb, sparse, model.input_mode))[0, 0].numpy()
+            d = model.depth_of(rgb, sparse)[0, 0].numpy()
         valid = (sample["gt"] > 1e-3) & (sample["gt"] < 80)
         if not ckpt.config.selfsup.metric_scale:  # as evaluated: per-image median scaling
             d = d * np.median(sample["gt"][valid]) / np.median(d[valid])

@@ -61,6 +61,7 @@ _FIELDS = {
     "max_depth": "max_depth",
     "pictures": "pictures",
     "threads": "threads",
+    "lidar_encoder": "lidar_encoder",
 }
 
 # CLI parameter -> SelfSupSettings field (only with --self-supervised)
@@ -78,6 +79,7 @@ _SELFSUP_FIELDS = {
     "sbm_beta": "sbm_beta",
     "sbm_percentile": "sbm_percentile",
     "pose_width": "pose_width",
+    "pose_lidar_encoder": "pose_lidar_encoder",
 }
 
 
@@ -182,6 +184,14 @@ def selfsup_options(f):
             show_default=True,
             help="Self-supervised: width of the pose network's first layer.",
         ),
+        click.option(
+            "--pose-lidar-encoder",
+            type=click.Choice(["none", "sfe", "dense"]),
+            default="none",
+            show_default=True,
+            help="Self-supervised: LiDAR branch of the pose network too (EffisDepth's SFE in "
+            "depth and pose): both frames' sparse depth, fused into its first five levels.",
+        ),
     ]
     for d in reversed(decorators):
         f = d(f)
@@ -253,6 +263,15 @@ def selfsup_options(f):
     help="Width of the first level (32 gives 32-64-128-256-512).",
 )
 @click.option(
+    "--lidar-encoder",
+    type=click.Choice(["none", "sfe", "dense"]),
+    default="none",
+    show_default=True,
+    help="LiDAR branch of the depth network: sfe = EffisDepth's Sparse Feature Extractor, "
+    "dense = its dense twin, its features added to each encoder level (docs/sfe.md); the "
+    "U-Net then takes the image alone (--input defaults to rgb). none = early fusion only.",
+)
+@click.option(
     "--final-layer/--no-final-layer",
     default=False,
     show_default=True,
@@ -319,6 +338,8 @@ def train(ctx, dataset, out_dir, resume, as_json, self_supervised, **options):
       sparsetools train out/ds -o out/run_rgbd --resume --epochs 30
       sparsetools train out/ds -o out/run_ss --self-supervised --input rgb --width 8
       sparsetools train out/ds -o out/run_ss4 --self-supervised --sparse-loss silog
+      sparsetools train out/ds -o out/sfe --self-supervised --sparse-loss silog --lidar-encoder sfe
+      sparsetools train out/ds -o out/run_sfe_sup --lidar-encoder sfe --width 16
       sparsetools eval --checkpoint out/run_rgbd/best.pt out/ds --split test
     """
     from ..train.config import SelfSupSettings, TrainConfig
@@ -335,6 +356,8 @@ def train(ctx, dataset, out_dir, resume, as_json, self_supervised, **options):
             f"{option} is an option of self-supervised training: add --self-supervised"
         )
 
+    if options["lidar_encoder"] != "none" and not given("input_mode"):
+        options["input_mode"] = "rgb"  # EffisDepth: the sparse depth goes to its own branch
     explicit = {_FIELDS[name] for name in _FIELDS if given(name)}
     explicit |= {f"selfsup.{_SELFSUP_FIELDS[name]}" for name in set_selfsup}
     if given("self_supervised"):

@@ -194,6 +194,11 @@ class Checkpoint:
     def input_mode(self) -> str:
         return self.model_config["input_mode"]
 
+    @property
+    def lidar_encoder(self) -> str:
+        """The depth network's LiDAR branch (``'none'`` in checkpoints from before it)."""
+        return self.model_config.get("lidar_encoder", "none")
+
 
 def check_run_dir(out: Path, dataset: Path, resume: bool) -> None:
     """Refuse a run folder that is a file, inside the dataset, or (without resume) taken.

@@ -20,7 +20,7 @@ from dataclasses import asdict, dataclass, fields, replace
 
 from ..errors import ParameterError
 from .losses import LOSSES
-from .model import INPUT_CHANNELS
+from .model import INPUT_CHANNELS, LIDAR_ENCODERS
 from .runtime import resolve_device
 
 __all__ = [
@@ -70,6 +70,10 @@ class SelfSupSettings:
         Percentile (0-100) of the per-pixel temporal change that the threshold tracks.
     pose_width : int
         Width of the first level of the pose network.
+    pose_lidar_encoder : {'none', 'sfe', 'dense'}
+        LiDAR branch of the pose network (EffisDepth's "SFE in depth and pose"): the two
+        frames' sparse depth maps through an SFE (or its dense twin) whose features are added
+        to the pose encoder's first five levels (:mod:`sparsetools.train.selfsup.pose_net`).
     """
 
     sparse_loss: str = "none"
@@ -85,6 +89,7 @@ class SelfSupSettings:
     sbm_beta: float = 0.98
     sbm_percentile: float = 10.0
     pose_width: int = 16
+    pose_lidar_encoder: str = "none"
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -137,6 +142,12 @@ class SelfSupSettings:
             raise ParameterError(
                 f"pose_width must be >= 1, got {self.pose_width}", param="pose_width"
             )
+        if self.pose_lidar_encoder not in LIDAR_ENCODERS:
+            raise ParameterError(
+                f"unknown pose LiDAR encoder {self.pose_lidar_encoder!r}; choose one of "
+                f"{', '.join(LIDAR_ENCODERS)}",
+                param="pose_lidar_encoder",
+            )
 
     @property
     def metric_scale(self) -> bool:
@@ -151,6 +162,9 @@ class TrainConfig:
     ``crop`` is (height, width); ``max_steps`` caps the total number of optimizer steps.
     ``workers``, ``device`` and ``threads`` do not change the results on CPU. ``selfsup``
     selects self-supervised training (None: supervised, with ``loss`` on ground truth).
+    ``lidar_encoder`` (``'none'``, ``'sfe'``, ``'dense'``) adds a LiDAR branch to the depth
+    network (:mod:`sparsetools.train.model`; EffisDepth's layout, so ``input_mode`` must then
+    be ``'rgb'``).
     """
 
     dataset: str
@@ -178,6 +192,7 @@ class TrainConfig:
     threads: int | None = None
     scale_range: tuple[float, float] = (1.0, 1.0)
     jitter: float = 0.2
+    lidar_encoder: str = "none"
     selfsup: SelfSupSettings | None = None
 
     #: Fields that may change when a run is resumed (they do not alter the maths).
@@ -250,6 +265,19 @@ class TrainConfig:
         if self.crop is not None and (len(self.crop) != 2 or min(self.crop) < 1):
             raise ParameterError(
                 f"crop must be two positive sizes (H, W), got {self.crop}", param="crop"
+            )
+        if self.lidar_encoder not in LIDAR_ENCODERS:
+            raise ParameterError(
+                f"unknown LiDAR encoder {self.lidar_encoder!r}; choose one of "
+                f"{', '.join(LIDAR_ENCODERS)}",
+                param="lidar_encoder",
+            )
+        if self.lidar_encoder != "none" and self.input_mode != "rgb":
+            raise ParameterError(
+                f"--lidar-encoder {self.lidar_encoder} takes the sparse depth into its own "
+                f"branch and the image alone into the U-Net (EffisDepth): use --input rgb, "
+                f"not {self.input_mode}",
+                param="input_mode",
             )
         resolve_device(self.device)
         if self.selfsup is not None:

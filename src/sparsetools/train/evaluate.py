@@ -30,7 +30,7 @@ from ..ops.metrics import METRIC_NAMES, aggregate_metrics, depth_metrics, format
 from .checkpoint import load_checkpoint, model_from_checkpoint
 from .data import DepthDataset, collate_samples
 from .losses import depth_loss
-from .model import DepthCompletionUNet, model_inputs
+from .model import DepthCompletionUNet
 from .runtime import (
     batches,
     make_loader,
@@ -88,6 +88,7 @@ class EvalResult:
     checkpoint: str | None = None
     kind: str | None = None
     input_mode: str | None = None
+    lidar_encoder: str | None = None
     epoch: int | None = None
     dataset: str | None = None
     split: str | None = None
@@ -171,7 +172,7 @@ def run_evaluation(
             rgb = batch["rgb"].to(device)
             sparse = batch["sparse"].to(device)
             gt = batch["gt"].to(device)
-            pred = model.predict_depth(model_inputs(rgb, sparse, model.input_mode))
+            pred = model.depth_of(rgb, sparse)
             if loss is not None:
                 loss_sum += float(depth_loss(loss, pred, cap_depth(gt, max_depth))) * len(rgb)
                 n_loss += len(rgb)
@@ -270,6 +271,7 @@ def evaluate_checkpoint(
         checkpoint=str(ckpt.path),
         kind=ckpt.kind,
         input_mode=ckpt.input_mode,
+        lidar_encoder=ckpt.lidar_encoder,
         epoch=ckpt.state.epoch,
         dataset=str(dataset),
         split=split,

@@ -4,6 +4,9 @@ A run writes its folder (:mod:`sparsetools.train.checkpoint` describes it) after
 ``metrics.csv``, ``last.pt``, ``best.pt`` (lowest validation RMSE), ``curves.png`` and
 prediction pictures.
 
+The depth network may have a LiDAR branch (``lidar_encoder``: EffisDepth's SFE or its dense
+twin, fused into the encoder; :mod:`sparsetools.train.model`), fed the batch's sparse depth.
+
 Reproducibility: the model is initialised from ``torch.manual_seed(seed)``; the order of the
 training samples of epoch ``e`` is a permutation drawn from ``(seed, e)`` and each sample's
 augmentation from ``(seed, e, index)`` (:mod:`sparsetools.train.data`), so neither depends on
@@ -41,7 +44,7 @@ from .config import TrainConfig, epoch_lr, resumed_config
 from .data import DepthDataset, collate_samples
 from .evaluate import cap_depth, picture_indices, run_evaluation
 from .losses import depth_loss
-from .model import STRIDE, DepthCompletionUNet, model_inputs
+from .model import STRIDE, DepthCompletionUNet
 from .plots import draw_curves, prediction_picture
 from .runtime import (
     batches,
@@ -216,7 +219,10 @@ def train(
     with torch_settings(config.threads, device):
         torch.manual_seed(config.seed)
         model = DepthCompletionUNet(
-            config.input_mode, width=config.width, final_layer=config.final_layer
+            config.input_mode,
+            width=config.width,
+            final_layer=config.final_layer,
+            lidar_encoder=config.lidar_encoder,
         ).to(device)
         optimizer = make_optimizer(model.parameters(), config)
         state = TrainingState()
@@ -267,7 +273,7 @@ def train(
                     rgb = batch["rgb"].to(device)
                     sparse = batch["sparse"].to(device)
                     gt = cap_depth(batch["gt"].to(device), config.max_depth)
-                    pred = model(model_inputs(rgb, sparse, config.input_mode))
+                    pred = model.run(rgb, sparse)
                     loss = depth_loss(config.loss, pred, gt)
                     if not torch.isfinite(loss):
                         raise ParameterError(

@@ -26,6 +26,18 @@ input ("early fusion") and go through one encoder-decoder:
 Inputs of any size: the network pads to a multiple of 16 at the bottom and right, and crops
 the prediction back.
 
+LiDAR encoder (``lidar_encoder``, EffisDepth's parallel-encoder layout; docs/sfe.md): with
+``'sfe'`` the sparse depth map goes through a Sparse Feature Extractor
+(:class:`sparsetools.train.sfe.SparseFeatureExtractor`) whose five outputs have the widths and
+scales of the encoder levels; with ``'dense'`` through its dense twin of the same parameter
+count (:class:`~sparsetools.train.sfe.DenseLidarEncoder`). Level i's LiDAR features are ADDED
+to encoder level i's output, before it becomes the skip and before the max pooling into level
+i + 1: no layer of the U-Net changes and the LiDAR reaches the deeper levels and, through the
+skips, the decoder; the SFE's features are exactly zero away from the LiDAR sites, so there the
+image features pass unchanged. The map is padded like the image (bottom/right, zeros = empty).
+``'none'`` (default) is plain early fusion; EffisDepth's layout feeds the image alone to the
+U-Net (``input_mode='rgb'``), which :class:`~sparsetools.train.config.TrainConfig` requires.
+
 For self-supervised training (``output='disparity'``) the softplus head and the adjustment
 layer are replaced by monodepth2's multi-scale output: a 3x3 convolution (reflection padding)
 and a sigmoid on each of the four decoder stages (scales 1, 1/2, 1/4, 1/8), read as depth by
@@ -51,11 +63,14 @@ from ..errors import ParameterError
 
 __all__ = [
     "INPUT_CHANNELS",
+    "LIDAR_ENCODERS",
     "OUTPUTS",
     "DepthCompletionUNet",
+    "build_lidar_encoder",
     "build_model",
     "disparity_to_depth",
     "model_inputs",
+    "pad_to_stride",
 ]
 
 #: Number of input channels of each input mode.
@@ -64,6 +79,8 @@ INPUT_CHANNELS = {"rgb": 3, "rgbd": 4, "rgbdm": 5}
 BASE_WIDTHS = (32, 64, 128, 256, 512)
 #: What the network predicts: metric depth, or multi-scale sigmoid disparity.
 OUTPUTS = ("depth", "disparity")
+#: LiDAR branches fused into the encoder: none (early fusion only), the SFE, its dense twin.
+LIDAR_ENCODERS = ("none", "sfe", "dense")
 #: Downsampling factor of the deepest level.
 STRIDE = 16
 
@@ -73,6 +90,58 @@ _RGB_STD = 0.225
 _DEPTH_SCALE = 20.0
 _INIT_DEPTH = 10.0
 _SLOPE = 0.1
+#: Offset of the seed of a LiDAR branch's weights from the global seed (one per network).
+LIDAR_SEED_OFFSETS = {"depth": 7919, "pose": 7927}
+
+
+def build_lidar_encoder(
+    kind: str,
+    *,
+    widths: tuple[int, ...],
+    scales: tuple[int, ...],
+    depth_channels: int = 1,
+    network: str = "depth",
+) -> nn.Module | None:
+    """The LiDAR branch ``kind`` (None for ``'none'``) with outputs of ``widths`` at ``scales``.
+
+    Parameters
+    ----------
+    kind : {'none', 'sfe', 'dense'}
+        :class:`~sparsetools.train.sfe.SparseFeatureExtractor` or its dense twin
+        :class:`~sparsetools.train.sfe.DenseLidarEncoder` (one SGB per scale).
+    widths, scales : tuple of int
+        Output channels and strides (increasing powers of two) of the levels it feeds.
+    depth_channels : int
+        Depth maps per input (2 for a pose network's frame pair).
+    network : {'depth', 'pose'}
+        Which network it belongs to: selects its seed.
+
+    Notes
+    -----
+    The weights are drawn from their own stream, seeded with ``torch.initial_seed() +
+    LIDAR_SEED_OFFSETS[network]``, and the global RNG is left as it was: with one seed, the
+    image networks start from the same weights whatever the LiDAR encoder (the ablations of
+    docs/sfe.md compare like with like), and the SFE and its dense twin from the same stream.
+    """
+    if kind not in LIDAR_ENCODERS:
+        raise ParameterError(
+            f"unknown LiDAR encoder {kind!r}; choose one of {', '.join(LIDAR_ENCODERS)}",
+            param="lidar_encoder",
+        )
+    if kind == "none":
+        return None
+    from .sfe import DenseLidarEncoder, SparseFeatureExtractor
+
+    cls = SparseFeatureExtractor if kind == "sfe" else DenseLidarEncoder
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(torch.initial_seed() + LIDAR_SEED_OFFSETS[network])
+        return cls(widths=tuple(widths), scales=tuple(scales), depth_channels=depth_channels)
+
+
+def pad_to_stride(x: torch.Tensor, stride: int = 16) -> torch.Tensor:
+    """Zero-pad ``(B, C, H, W)`` at the bottom and right to multiples of ``stride``."""
+    pad_h, pad_w = (-x.shape[-2]) % stride, (-x.shape[-1]) % stride
+    return F.pad(x, (0, pad_w, 0, pad_h)) if pad_h or pad_w else x
 
 
 def model_inputs(rgb: torch.Tensor, sparse: torch.Tensor | None, mode: str) -> torch.Tensor:
@@ -184,6 +253,9 @@ class DepthCompletionUNet(nn.Module):
     initial_depth : float, optional, metres
         ``output='disparity'``: start every scale at this depth (zero weights, matching bias)
         instead of torch's default initialisation (sigmoid about 0.5, i.e. about 0.2 m).
+    lidar_encoder : {'none', 'sfe', 'dense'}
+        LiDAR branch whose level-i features are added to encoder level i (module docstring);
+        ``forward`` then needs ``lidar``.
     """
 
     def __init__(
@@ -195,6 +267,7 @@ class DepthCompletionUNet(nn.Module):
         output: str = "depth",
         depth_range: tuple[float, float] = (0.1, 100.0),
         initial_depth: float | None = None,
+        lidar_encoder: str = "none",
     ):
         super().__init__()
         if input_mode not in INPUT_CHANNELS:
@@ -222,9 +295,13 @@ class DepthCompletionUNet(nn.Module):
         self.output = output
         self.depth_range = (lo, hi)
         self.initial_depth = None if initial_depth is None else float(initial_depth)
+        self.lidar_encoder = lidar_encoder
         c_in = INPUT_CHANNELS[input_mode]
         widths = [max(1, round(b * self.width / 32)) for b in BASE_WIDTHS]
         self.widths = tuple(widths)
+        self.lidar_branch = build_lidar_encoder(
+            lidar_encoder, widths=self.widths, scales=tuple(2**i for i in range(len(widths)))
+        )
 
         self.stem = nn.Sequential(
             nn.Conv2d(c_in, widths[0], 3, padding=1, bias=False),
@@ -270,22 +347,49 @@ class DepthCompletionUNet(nn.Module):
     def in_channels(self) -> int:
         return INPUT_CHANNELS[self.input_mode]
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor | list[torch.Tensor]:
+    def forward(
+        self, x: torch.Tensor, lidar: torch.Tensor | None = None
+    ) -> torch.Tensor | list[torch.Tensor]:
+        """Depth (or the disparity list) of the network input ``x``.
+
+        Parameters
+        ----------
+        x : (B, C, H, W) float
+            :func:`model_inputs` of the input mode.
+        lidar : (B, 1, H, W) float, metres, 0 = empty
+            Sparse depth for the LiDAR branch (needed with ``lidar_encoder`` 'sfe' or
+            'dense', ignored without one).
+        """
         if x.ndim != 4 or x.shape[1] != self.in_channels:
             raise ParameterError(
                 f"model for input mode {self.input_mode!r} expects (B, {self.in_channels}, H, W), "
                 f"got {tuple(x.shape)}"
             )
         h, w = x.shape[-2:]
-        pad_h, pad_w = (-h) % STRIDE, (-w) % STRIDE
-        if pad_h or pad_w:
-            x = F.pad(x, (0, pad_w, 0, pad_h))
+        x = pad_to_stride(x, STRIDE)
+        lidar_feats = None
+        if self.lidar_branch is not None:
+            if lidar is None or lidar.ndim != 4 or lidar.shape[1] != 1:
+                got = None if lidar is None else tuple(lidar.shape)
+                raise ParameterError(
+                    f"a model with the {self.lidar_encoder} LiDAR encoder needs lidar=(B, 1, H, W) "
+                    f"sparse depth, got {got}",
+                    param="lidar",
+                )
+            if lidar.shape[0] != x.shape[0] or lidar.shape[-2:] != (h, w):
+                raise ParameterError(
+                    f"lidar {tuple(lidar.shape)} does not match the input {(x.shape[0], h, w)}",
+                    param="lidar",
+                )
+            lidar_feats = self.lidar_branch(pad_to_stride(lidar.to(x.dtype), STRIDE))
         feats = []
         y = self.stem(x)
         for i, block in enumerate(self.encoder):
             if i:
                 y = F.max_pool2d(y, 2)
             y = block(y)
+            if lidar_feats is not None:  # before the skip and the next pooling (docs/sfe.md)
+                y = y + lidar_feats[i]
             feats.append(y)
         y = feats[-1]
         stages = []
@@ -310,15 +414,29 @@ class DepthCompletionUNet(nn.Module):
             depth = depth + self.adjust(torch.cat(parts, dim=1)) * _DEPTH_SCALE
         return depth[:, :, :h, :w]
 
-    def predict_depth(self, x: torch.Tensor) -> torch.Tensor:
+    def predict_depth(self, x: torch.Tensor, lidar: torch.Tensor | None = None) -> torch.Tensor:
         """(B, 1, H, W) depth in metres of the network input ``x`` (see :func:`model_inputs`).
 
         For ``output='disparity'`` the full-resolution (scale 0) disparity as depth.
         """
-        out = self(x)
+        out = self(x, lidar)
         if self.output == "disparity":
             return disparity_to_depth(out[0], *self.depth_range)
         return out
+
+    def run(self, rgb: torch.Tensor, sparse: torch.Tensor | None) -> torch.Tensor | list:
+        """``forward`` on a batch: the input of the model's mode, the sparse map to its branch.
+
+        Parameters
+        ----------
+        rgb : (B, 3, H, W) float, 0..1
+        sparse : (B, 1, H, W) float, metres, 0 = empty; may be None for a camera-only model
+        """
+        return self(model_inputs(rgb, sparse, self.input_mode), sparse)
+
+    def depth_of(self, rgb: torch.Tensor, sparse: torch.Tensor | None) -> torch.Tensor:
+        """:meth:`predict_depth` on a batch (as :meth:`run`): (B, 1, H, W) metres."""
+        return self.predict_depth(model_inputs(rgb, sparse, self.input_mode), sparse)
 
     def config(self) -> dict:
         """The constructor arguments (saved in checkpoints)."""
@@ -327,6 +445,8 @@ class DepthCompletionUNet(nn.Module):
             cfg["output"] = self.output
             cfg["depth_range"] = list(self.depth_range)
             cfg["initial_depth"] = self.initial_depth
+        if self.lidar_encoder != "none":  # older checkpoints have no such key: 'none'
+            cfg["lidar_encoder"] = self.lidar_encoder
         return cfg
 
 
@@ -361,6 +481,7 @@ def build_model(config: dict) -> DepthCompletionUNet:
             output=str(config.get("output", "depth")),
             depth_range=tuple(config.get("depth_range", (0.1, 100.0))),
             initial_depth=config.get("initial_depth"),
+            lidar_encoder=str(config.get("lidar_encoder", "none")),
         )
     except KeyError as exc:
         raise ParameterError(f"model configuration lacks {exc.args[0]!r}") from None

@@ -18,6 +18,9 @@ set of colour-jitter factors per triplet, applied to all three frames. Colour ji
 only the networks' inputs; the photometric loss sees the frames without it (monodepth2). The
 intrinsics follow the crop (``c' = c - offset``) and the flip (``cx' = w - 1 - cx``).
 
+Option ``sparse_frames`` (a pose network with a LiDAR branch): the sparse depth of all three
+frames, cropped and flipped with them.
+
 Night option ``mcie`` (RNW): the MCIE table is built from the target frame
 (:func:`sparsetools.ops.enhance.mcie_lut`) and applied to all three frames; the enhanced frames
 are what the photometric loss compares.
@@ -40,6 +43,7 @@ __all__ = [
     "TripletDataset",
     "collate_triplets",
     "frame_poses",
+    "frame_sparse",
     "frame_triplets",
     "natural_key",
     "sequence_frames",
@@ -145,6 +149,25 @@ def frame_poses(reader) -> list[np.ndarray | None]:
     return out
 
 
+def frame_sparse(reader, position: int) -> np.ndarray:
+    """(H, W) float32 sparse depth (metres, 0 = empty) of one frame, without its image.
+
+    Raises
+    ------
+    FormatError
+        The frame has no sparse depth.
+    """
+    from ...io.dataset import points_to_depth
+
+    row = reader.row(position)
+    if row["sparse_path"] is None and row["sparse_parquet"] is None:
+        raise FormatError(
+            f"sample '{row['id']}' has no sparse depth: a LiDAR encoder needs it for every frame"
+        )
+    u, v, depth = reader.sparse_points(position)
+    return points_to_depth(u, v, depth, row["height"], row["width"])
+
+
 def _intrinsics(row: dict) -> np.ndarray:
     if any(row[k] is None for k in ("fx", "fy", "cx", "cy")):
         raise FormatError(
@@ -175,11 +198,14 @@ class TripletDataset(Dataset):
         Photometric frames enhanced with one MCIE table per triplet (built from the target).
     mcie_clip : float
         MCIE clip limit.
+    sparse_frames : bool
+        Also yield the sparse depth of the three frames (``sparse_frames``).
 
     Each item is a dict: ``frames`` (3, 3, h, w) float32 0..1 [previous, target, following]
     as the photometric loss sees them; ``inputs`` (3, 3, h, w) float32 0..1 as the networks
     see them (jittered); ``sparse`` and ``gt`` (1, h, w) float32 metres of the target (zeros
-    when absent); ``K`` (3, 3) float32; ``index`` (int).
+    when absent); ``K`` (3, 3) float32; ``index`` (int); with ``sparse_frames``, also
+    ``sparse_frames`` (3, h, w) float32 metres [previous, target, following].
     """
 
     def __init__(
@@ -193,6 +219,7 @@ class TripletDataset(Dataset):
         jitter: float = 0.2,
         mcie: bool = False,
         mcie_clip: float = 0.004,
+        sparse_frames: bool = False,
     ):
         self.reader = open_split(path, split, need_gt=False)
         self.triplets = frame_triplets(self.reader)
@@ -208,6 +235,7 @@ class TripletDataset(Dataset):
         self.jitter = float(jitter)
         self.mcie = bool(mcie)
         self.mcie_clip = float(mcie_clip)
+        self.sparse_frames = bool(sparse_frames)
         rows = [self.reader.row(i) for i in range(len(self.reader))]
         for t in self.triplets:
             _intrinsics(rows[t.target])
@@ -269,12 +297,19 @@ class TripletDataset(Dataset):
         rgbs = [self._rgb(t.previous), target["rgb"], self._rgb(t.following)]
         sparse = target["sparse"]
         gt = target["gt"] if target["gt"] is not None else np.zeros(sparse.shape, np.float32)
+        # the target's own map is the one in ``sparse``: the same values, read once
+        lidar = (
+            [frame_sparse(self.reader, t.previous), sparse, frame_sparse(self.reader, t.following)]
+            if self.sparse_frames
+            else []
+        )
         K = _intrinsics(self.reader.row(t.target))
         if self.crop is not None:
             ch, cw = self.crop
             h, w = sparse.shape
             rgbs = [bottom_centre_crop(x, ch, cw) for x in rgbs]
             sparse, gt = bottom_centre_crop(sparse, ch, cw), bottom_centre_crop(gt, ch, cw)
+            lidar = [bottom_centre_crop(x, ch, cw) for x in lidar]
             K[0, 2] -= (w - cw) // 2
             K[1, 2] -= h - ch
         # fixed draw order: the same generator state gives the same augmentation
@@ -288,12 +323,13 @@ class TripletDataset(Dataset):
         if self.augment and do_flip:
             rgbs, loss_rgbs = [x[:, ::-1] for x in rgbs], [x[:, ::-1] for x in loss_rgbs]
             sparse, gt = sparse[:, ::-1], gt[:, ::-1]
+            lidar = [x[:, ::-1] for x in lidar]
             K[0, 2] = sparse.shape[1] - 1 - K[0, 2]
         frames = [x.astype(np.float32) / 255.0 for x in loss_rgbs]
         inputs = [x.astype(np.float32) / 255.0 for x in rgbs]
         if self.augment and self.jitter > 0:
             inputs = [colour_jitter(x, factors) for x in inputs]
-        return {
+        item = {
             "frames": torch.from_numpy(
                 np.ascontiguousarray(np.stack(frames).transpose(0, 3, 1, 2))
             ),
@@ -305,6 +341,11 @@ class TripletDataset(Dataset):
             "K": torch.from_numpy(K.astype(np.float32)),
             "index": int(index),
         }
+        if self.sparse_frames:
+            item["sparse_frames"] = torch.from_numpy(
+                np.ascontiguousarray(np.stack(lidar), dtype=np.float32)
+            )
+        return item
 
 
 def collate_triplets(items: list[dict]) -> dict:
@@ -317,8 +358,9 @@ def collate_triplets(items: list[dict]) -> dict:
             "or a dataset with one image size",
             param="crop",
         )
-    out = {
-        k: torch.stack([it[k] for it in items]) for k in ("frames", "inputs", "sparse", "gt", "K")
-    }
+    keys = ["frames", "inputs", "sparse", "gt", "K"]
+    if "sparse_frames" in items[0]:
+        keys.append("sparse_frames")
+    out = {k: torch.stack([it[k] for it in items]) for k in keys}
     out["index"] = torch.tensor([it["index"] for it in items], dtype=torch.long)
     return out

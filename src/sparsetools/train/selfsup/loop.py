@@ -2,7 +2,10 @@
 
 Same run folder, checkpoints, determinism and exact ``--resume`` as supervised training
 (:mod:`sparsetools.train.loop`): one Adam (or SGD) optimizer over both networks, the weights
-from ``torch.manual_seed(seed)`` (depth network first, then the pose network), the sample order
+from ``torch.manual_seed(seed)`` (depth network first, then the pose network; their LiDAR
+branches, ``--lidar-encoder`` and ``--pose-lidar-encoder``, from streams of their own, so the
+image networks start alike whatever the branches; :func:`sparsetools.train.model.build_lidar_encoder`;
+a pose branch also makes the triplets carry all three frames' sparse depth), the sample order
 of epoch e from ``(seed, e)``, each triplet's augmentation from ``(seed, e, index)``, and the
 auto-mask's tie-breaking noise of step k from ``(seed, k)``; the SBM threshold is saved with
 the checkpoint. Validation after every epoch reports the validation loss, the photometric
@@ -28,7 +31,7 @@ from ..checkpoint import BestRecord, Checkpoint, TrainingState, load_weights, sa
 from ..config import TrainConfig, epoch_lr
 from ..evaluate import EvaluationPass, cap_depth, picture_indices, rgb_uint8
 from ..loop import TrainSummary, make_optimizer, write_epoch_files
-from ..model import STRIDE, DepthCompletionUNet, disparity_to_depth, model_inputs
+from ..model import STRIDE, DepthCompletionUNet, disparity_to_depth
 from ..runtime import (
     batches,
     epoch_order,
@@ -64,11 +67,12 @@ def _split_has_gt(dataset: TripletDataset) -> bool:
     return all(dataset.reader.row(t.target)["gt_path"] is not None for t in dataset.triplets)
 
 
-def _forward(depth_net, pose_net, batch, config: TrainConfig, device):
+def _forward(depth_net, pose_net, batch, device):
     inputs = batch["inputs"].to(device)
     sparse = batch["sparse"].to(device)
-    disparities = depth_net(model_inputs(inputs[:, 1], sparse, config.input_mode))
-    transforms = source_transforms(pose_net, inputs[:, 0], inputs[:, 1], inputs[:, 2])
+    disparities = depth_net.run(inputs[:, 1], sparse)
+    lidar = batch["sparse_frames"].to(device) if pose_net.uses_lidar else None
+    transforms = source_transforms(pose_net, inputs[:, 0], inputs[:, 1], inputs[:, 2], lidar=lidar)
     return disparities, transforms, sparse
 
 
@@ -107,7 +111,7 @@ def validate_selfsup(
     loss_sum, pe_sum, n = 0.0, 0.0, 0
     with progress_bar(len(loader), "validation", progress) as bar:
         for batch in batches(loader):
-            disparities, transforms, sparse = _forward(depth_net, pose_net, batch, config, device)
+            disparities, transforms, sparse = _forward(depth_net, pose_net, batch, device)
             terms = selfsup_loss(
                 disparities,
                 batch["frames"].to(device),
@@ -181,7 +185,11 @@ def train_selfsup(
     out = Path(config.out_dir)
     device = resolve_device(config.device)
     common = dict(
-        crop=config.crop, seed=config.seed, mcie=settings.mcie, mcie_clip=settings.mcie_clip
+        crop=config.crop,
+        seed=config.seed,
+        mcie=settings.mcie,
+        mcie_clip=settings.mcie_clip,
+        sparse_frames=settings.pose_lidar_encoder != "none",
     )
     train_set = TripletDataset(
         config.dataset, config.train_split, augment=True, jitter=config.jitter, **common
@@ -209,8 +217,11 @@ def train_selfsup(
             depth_range=settings.depth_range,
             # metric runs start at a metric depth (see sparsetools.train.model)
             initial_depth=METRIC_INITIAL_DEPTH if settings.metric_scale else None,
+            lidar_encoder=config.lidar_encoder,
         ).to(device)
-        pose_net = PoseNet(width=settings.pose_width).to(device)
+        pose_net = PoseNet(width=settings.pose_width, lidar_encoder=settings.pose_lidar_encoder).to(
+            device
+        )
         optimizer = make_optimizer([*depth_net.parameters(), *pose_net.parameters()], config)
         sbm = (
             StatisticsMask(beta=settings.sbm_beta, q=settings.sbm_percentile)
@@ -264,9 +275,7 @@ def train_selfsup(
             ) as bar:
                 bar.update(state.batch_in_epoch)
                 for batch in batches(loader):
-                    disparities, transforms, sparse = _forward(
-                        depth_net, pose_net, batch, config, device
-                    )
+                    disparities, transforms, sparse = _forward(depth_net, pose_net, batch, device)
                     terms = selfsup_loss(
                         disparities,
                         batch["frames"].to(device),

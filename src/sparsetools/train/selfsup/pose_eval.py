@@ -13,7 +13,7 @@ The true positions are those of ``inv(G_0) G_k``. Then, as monodepth2's ``comput
   by N rather than taking the root of the mean; the same is done here so numbers compare).
 
 The result is the mean and standard deviation over all snippets, in metres. Frames are fed at
-their full size (no crop). One difference from monodepth2's script: it chains the forward
+their full size (no crop), with their sparse depth when the pose network has a LiDAR branch. One difference from monodepth2's script: it chains the forward
 transforms themselves (``cam_to_world = cam_to_world @ T``, for prediction and ground truth
 alike), which gives the translations of the inverse motions rather than the camera positions;
 for the small rotations between video frames the two agree closely, and the positions used
@@ -29,7 +29,7 @@ import torch
 
 from ...errors import ParameterError
 from ..data import open_split
-from .data import frame_poses, sequence_frames
+from .data import frame_poses, frame_sparse, sequence_frames
 from .pose_net import PoseNet
 
 __all__ = ["SNIPPET_LENGTH", "PoseAccuracy", "evaluate_pose", "snippet_ate", "snippet_positions"]
@@ -129,6 +129,8 @@ def evaluate_pose(
     if not runs:
         return None
     pose_net.eval()
+    # anything with ``transform(frame_a, frame_b)`` is a pose network here
+    uses_lidar = bool(getattr(pose_net, "uses_lidar", False))
 
     def frame(i):
         rgb = read_image(reader.path(reader.row(i)["rgb_path"], what="rgb_path"))
@@ -137,12 +139,20 @@ def evaluate_pose(
     errors = []
     for run in runs:
         images = [frame(i) for i in run]
+        lidar = [torch.from_numpy(frame_sparse(reader, i)) for i in run] if uses_lidar else []
         predicted = []
         for a in range(0, len(run) - 1, batch_size):
             b = min(a + batch_size, len(run) - 1)
             first = torch.stack(images[a:b]).to(device)
             second = torch.stack(images[a + 1 : b + 1]).to(device)
-            predicted += list(pose_net.transform(first, second).double().cpu().numpy())
+            if lidar:
+                pair = torch.stack(
+                    [torch.stack(lidar[a:b]), torch.stack(lidar[a + 1 : b + 1])], dim=1
+                ).to(device)
+                T = pose_net.transform(first, second, pair)
+            else:
+                T = pose_net.transform(first, second)
+            predicted += list(T.double().cpu().numpy())
         for j in range(len(run) - SNIPPET_LENGTH + 1):
             pred = snippet_positions(predicted[j : j + SNIPPET_LENGTH - 1])
             G0 = np.linalg.inv(poses[run[j]])
