@@ -273,12 +273,18 @@ def encode_depth_png(depth: np.ndarray) -> tuple[bytes, int]:
     depth = np.asarray(depth)
     if depth.ndim != 2:
         raise ParameterError(f"depth must be (H, W), got shape {depth.shape}")
-    # Sparse maps are mostly empty: convert only the valid pixels.
-    valid = np.isfinite(depth) & (depth > 0)
-    scaled = np.rint(depth[valid].astype(np.float64) * DEPTH_SCALE)
+    # Sparse maps are mostly empty: one pass finds the candidates (NaN fails ``> 0``), then
+    # only those are checked for Inf and converted.
+    flat = np.ravel(depth)
+    index = np.flatnonzero(flat > 0)
+    values = flat[index]
+    finite = np.isfinite(values)
+    if not finite.all():
+        index, values = index[finite], values[finite]
+    scaled = np.rint(values.astype(np.float64) * DEPTH_SCALE)
     clipped = int(np.count_nonzero((scaled < 1) | (scaled > 65535)))
     out = np.zeros(depth.shape, dtype=np.uint16)
-    out[valid] = np.clip(scaled, 1, 65535).astype(np.uint16)
+    out.reshape(-1)[index] = np.clip(scaled, 1, 65535).astype(np.uint16)
     ok, buf = cv2.imencode(".png", out)
     if not ok:  # pragma: no cover - OpenCV always encodes uint16 PNG
         raise FormatError("OpenCV failed to encode a depth PNG")

@@ -20,6 +20,7 @@ import contextlib
 import hashlib
 import json
 import os
+import stat
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -83,30 +84,54 @@ class FileIdentity:
         return self.sha256 is not None and self.sha256 == other.sha256
 
 
-def file_identity(path: str | os.PathLike, *, hash_limit: int = HASH_LIMIT) -> FileIdentity:
+def file_identity(
+    path: str | os.PathLike,
+    *,
+    hash_limit: int = HASH_LIMIT,
+    folders: dict[str, str] | None = None,
+) -> FileIdentity:
     """Identity of ``path`` (resolved); a missing file has size -1.
 
     A folder (a KITTI raw calibration folder) is identified by the identities of the
-    calibration files in it, folded into one hash.
+    calibration files in it, folded into one hash. ``folders`` caches the resolved folders of
+    a batch (most inputs share a few): a plain file in a known folder then costs one
+    ``lstat``, not one per path component.
     """
+    text = os.fspath(path)
+    if folders is not None and ".." not in text.replace(os.altsep or os.sep, os.sep).split(os.sep):
+        head, name = os.path.split(os.path.abspath(text))
+        try:
+            st = os.lstat(text)
+        except OSError:
+            st = None
+        if st is not None and stat.S_ISREG(st.st_mode):  # not a link, not a folder
+            real = folders.get(head)
+            if real is None:
+                real = folders[head] = os.path.realpath(head)
+            return _regular_identity(os.path.join(real, name), st, hash_limit)
     p = Path(path).resolve()
     try:
         st = p.stat()
     except OSError:
         return FileIdentity(str(p), -1, 0, None)
-    if p.is_dir():
+    if stat.S_ISDIR(st.st_mode):
         h = hashlib.sha256()
         for child in sorted(p.glob("calib_*.txt")):
             ident = file_identity(child, hash_limit=hash_limit)
             h.update(json.dumps(ident.to_list()).encode())
         return FileIdentity(str(p), 0, 0, h.hexdigest())
+    return _regular_identity(str(p), st, hash_limit)
+
+
+def _regular_identity(path: str, st: os.stat_result, hash_limit: int) -> FileIdentity:
     sha = None
     if st.st_size <= hash_limit:
         try:
-            sha = hashlib.sha256(p.read_bytes()).hexdigest()
+            with open(path, "rb") as fh:
+                sha = hashlib.sha256(fh.read()).hexdigest()
         except OSError:
             sha = None
-    return FileIdentity(str(p), int(st.st_size), int(st.st_mtime_ns), sha)
+    return FileIdentity(path, int(st.st_size), int(st.st_mtime_ns), sha)
 
 
 @dataclass(frozen=True)

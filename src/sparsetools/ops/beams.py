@@ -14,7 +14,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ParameterError
-from .lidar_profile import SensorProfile, _check_n_lasers, _check_points, _check_ring
+from .lidar_profile import (
+    SensorProfile,
+    _check_n_lasers,
+    _check_points,
+    _check_ring,
+)
 from .rings import (
     RING_METHODS,
     RingTable,
@@ -123,6 +128,90 @@ def pl_line_spec(n: int, *, height: int = 64) -> tuple[int, ...]:
     return tuple(range(0, height, height // int(n)))
 
 
+#: Padding (deg) of the float32 bounds on each laser's elevation median: over 1000 times the
+#: error of the float32 squares, square root and division behind them on any cloud that
+#: passes the range guard of :func:`_elevation_bounds`.
+_BOUND_PAD_DEG = 0.01
+#: Stands in for the elevation of a laser that cannot be chosen (finite: it has points).
+_NEVER_DEG = 1e300
+
+
+def _horizon_elevations(
+    points: np.ndarray, ring: np.ndarray, n: int, *, n_lasers: int, far_range: float
+) -> np.ndarray:
+    """What :func:`horizon_rings` needs of :func:`ring_elevations` for ``n`` beams.
+
+    Exact elevations for every laser that can be chosen, :data:`_NEVER_DEG` for the other
+    lasers with points, NaN for lasers without: :func:`horizon_rings` then chooses exactly as
+    with every exact elevation, and only the contenders' points need float64 elevations.
+
+    Each laser's exact elevation lies in a cheap interval ``[lo, hi]``
+    (:func:`_elevation_bounds`), so its distance to a target lies in ``[d_min, d_max]``.
+    Target ``j`` takes the nearest free laser, and at most ``j`` lasers are taken before it,
+    so one of the ``j + 1`` lasers with the smallest ``d_max`` is free: the laser it takes
+    has ``d_min`` at most the ``j + 1``-th smallest ``d_max``.
+    """
+    bounds = _elevation_bounds(points, ring, n_lasers=n_lasers, far_range=far_range)
+    if bounds is None:
+        return ring_elevations(points, ring, n_lasers=n_lasers, far_range=far_range)
+    lo, hi = bounds
+    has_points = np.isfinite(lo)
+    n = min(int(n), int(np.count_nonzero(has_points)))
+    contenders = np.zeros(n_lasers, bool)
+    for j, target in enumerate(HORIZON_TARGETS_DEG[0] - _HORIZON_PITCH_DEG * np.arange(n)):
+        d_min = np.where(has_points, np.maximum(np.maximum(lo - target, target - hi), 0.0), np.inf)
+        d_max = np.where(has_points, np.maximum(np.abs(lo - target), np.abs(hi - target)), np.inf)
+        contenders |= d_min <= np.partition(d_max, j)[j]
+    rows = np.flatnonzero(contenders[ring])
+    exact = ring_elevations(points[rows], ring[rows], n_lasers=n_lasers, far_range=far_range)
+    return np.where(contenders, exact, np.where(has_points, _NEVER_DEG, np.nan))
+
+
+def _elevation_bounds(
+    points: np.ndarray, ring: np.ndarray, *, n_lasers: int, far_range: float, min_far: int = 10
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Degrees ``lo <= ring_elevations(...) <= hi`` per laser (NaN: no points), from float32.
+
+    A median lies between the minimum and the maximum of its points, and the elevation
+    ``atan(z / r)`` grows with ``z / r``: per laser, the float32 ``z / r`` range over the
+    points its median may use (the points possibly beyond ``far_range`` when at least
+    ``min_far`` are surely beyond it, else all) gives the bounds, padded by
+    :data:`_BOUND_PAD_DEG`. None when the rings are not runs of the scan (elevation
+    fallback) or float32 cannot be trusted (coordinates beyond 1e19 m or within 1e-15 m of
+    the axis).
+    """
+    if ring.size == 0 or np.any(ring[1:] < ring[:-1]):
+        return None
+    x = points[:, 0].astype(np.float32, copy=False)
+    y = points[:, 1].astype(np.float32, copy=False)
+    r2 = x * x
+    r2 += y * y
+    if not (np.isfinite(r2).all() and r2.min() >= 1e-30):
+        return None
+    ratio = points[:, 2].astype(np.float32, copy=False) / np.sqrt(r2)
+    limit = float(far_range) ** 2
+    # Rings are runs: laser k holds rows edges[k]:edges[k + 1].
+    edges = np.searchsorted(ring, np.arange(n_lasers + 1))
+    present = np.flatnonzero(np.diff(edges))
+    starts = edges[present]
+    surely_far = r2 > np.float32(limit * (1.0 + 1e-5))
+    maybe_far = r2 >= np.float32(limit * (1.0 - 1e-5))
+    n_sure = np.zeros(n_lasers, np.intp)
+    n_sure[present] = np.add.reduceat(surely_far, starts, dtype=np.intp)
+    # the exact far count is >= min_far too: the median runs over far points, all maybe-far
+    far = (n_sure >= min_far)[present]
+    far_ratio = np.where(maybe_far, ratio, np.float32(np.nan))
+    lo = np.full(n_lasers, np.nan)
+    hi = np.full(n_lasers, np.nan)
+    lo[present] = np.where(
+        far, np.fmin.reduceat(far_ratio, starts), np.minimum.reduceat(ratio, starts)
+    )
+    hi[present] = np.where(
+        far, np.fmax.reduceat(far_ratio, starts), np.maximum.reduceat(ratio, starts)
+    )
+    return np.degrees(np.arctan(lo)) - _BOUND_PAD_DEG, np.degrees(np.arctan(hi)) + _BOUND_PAD_DEG
+
+
 def _check_n(n, available: int) -> int:
     if n is None or int(n) != n or n < 1:
         raise ParameterError(f"N (beams to keep) must be a positive integer, got {n}")
@@ -187,7 +276,7 @@ def pl_sparsify_index(
     with np.errstate(divide="ignore", invalid="ignore"):
         u = uvw[:, 0] / uvw[:, 2]
         v = uvw[:, 1] / uvw[:, 2]
-    x, y, z = (points[:, i].astype(np.float32) for i in range(3))
+    x, y, z = (points[:, i].astype(np.float32, copy=False) for i in range(3))
     keep = (u < img_w) & (u >= 0) & (v < img_h) & (v >= 0) & (x > 2.0)
     keep &= (x < 120) & (x >= 0) & (y < 50) & (y >= -50) & (z < 1.5) & (z >= -2.5)
     idx = np.flatnonzero(keep)
@@ -340,7 +429,9 @@ def select_beams(
     if ring is None:
         raise ParameterError(f"selection {select or 'by rings'} needs the ring of every point")
     ring = _check_ring(ring, points.shape[0], n_lasers)
-    present = np.unique(ring)
+    seen = np.zeros(n_lasers, bool)
+    seen[ring] = True
+    present = np.flatnonzero(seen)
     if rings is not None:
         chosen = tuple(sorted(int(k) for k in rings))
         if not chosen:
@@ -363,12 +454,14 @@ def select_beams(
             elif profile is not None:
                 el = profile.elevation_deg
             else:
-                el = ring_elevations(points, ring, n_lasers=n_lasers, far_range=far_range)
+                el = _horizon_elevations(points, ring, n, n_lasers=n_lasers, far_range=far_range)
             if el.shape != (n_lasers,):
                 raise ParameterError(f"need one elevation per laser ({n_lasers}), got {el.shape}")
             chosen = horizon_rings(el, n)
     missing = sorted(set(chosen) - set(present.tolist()))
     if missing:
         log.warning("ring(s) %s have no points in this cloud", missing)
-    index = np.flatnonzero(np.isin(ring, chosen)).astype(np.int64)
+    wanted = np.zeros(n_lasers, bool)
+    wanted[list(chosen)] = True
+    index = np.flatnonzero(wanted[ring]).astype(np.int64)
     return BeamSelection(points[index], index, chosen, mode, points.shape[0])

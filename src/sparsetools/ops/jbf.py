@@ -21,14 +21,35 @@ confidence; or the reverse for ``conflict="max-confidence"``).
 
 from __future__ import annotations
 
+import itertools
 import math
+import os
 
-import numba
 import numpy as np
 
 from ..errors import ParameterError
+from ._jbf_kernels import (
+    _offset_table,  # noqa: F401 - looked up here by the tests (cache check)
+    band_gray,
+    band_rgb,
+    expand_gray,
+    expand_rgb,
+    mark_seeds,
+    prologue,
+)
 
-__all__ = ["CONFLICTS", "KERNELS", "RANGE_METRICS", "height_extend", "jbf_expand", "pruning_radius"]
+# The single-threaded kernels under the names the tests look up (cache checks).
+_expand_gray, _expand_rgb = expand_gray, expand_rgb
+
+__all__ = [
+    "CONFLICTS",
+    "KERNELS",
+    "RANGE_METRICS",
+    "default_threads",
+    "height_extend",
+    "jbf_expand",
+    "pruning_radius",
+]
 
 KERNELS = ("jbf", "range", "spatial")
 RANGE_METRICS = ("gray", "rgb")
@@ -127,6 +148,7 @@ def jbf_expand(
     kernel: str = "jbf",
     range_metric: str = "gray",
     conflict: str = "nearest",
+    threads: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Expand sparse radar depth with the range-aware joint bilateral confidence.
 
@@ -158,6 +180,11 @@ def jbf_expand(
         Which seed a pixel reached by several windows takes: the nearest (smallest depth;
         equal depths: the higher confidence), or the most confident (equal confidences: the
         smaller depth). Seeds that tie on both give the same output pixel.
+    threads : int, optional
+        Threads of the compiled kernel (bands of rows, one per thread). Default: 1 when
+        ``NUMBA_NUM_THREADS`` or ``OMP_NUM_THREADS`` is 1 (batch worker processes), else
+        numba's thread count (the CPUs this process may use). The result is the same for
+        any value.
 
     Returns
     -------
@@ -178,8 +205,9 @@ def jbf_expand(
     The kernel is compiled with numba (``cache=True``: the first call in a fresh environment
     compiles for a few seconds, later processes load the cached machine code). Cost is
     O(seeds x window), with the window cut exactly at :func:`pruning_radius` when the
-    spatial kernel takes part. Single-threaded: batches parallelise over frames. The two
-    returned arrays are views of one (2, H, W) buffer (one allocation instead of two).
+    spatial kernel takes part. With several threads the rows are split into bands of equal
+    estimated work, each written by one thread only; small inputs run on one thread. The
+    two returned arrays are views of one (2, H, W) buffer (one allocation instead of two).
     """
     radar = _check_radar(radar_depth)
     fx = _check_positive("fx", fx)
@@ -205,6 +233,8 @@ def jbf_expand(
         )
     if conflict not in CONFLICTS:
         raise ParameterError(f"conflict must be one of {', '.join(CONFLICTS)}, got {conflict!r}")
+    if threads is not None and (int(threads) != threads or threads < 1):
+        raise ParameterError(f"threads must be a positive integer, got {threads!r}")
     guide = _guidance_for(guidance, radar.shape, range_metric, kernel=kernel)
 
     rows, cols, depths = _seeds(radar)
@@ -224,6 +254,7 @@ def jbf_expand(
         threshold=threshold,
         kernel=kernel,
         conflict=conflict,
+        threads=threads,
     )
 
 
@@ -235,6 +266,60 @@ def _half_windows(depths, fx, fy, w_m, h_m) -> tuple[np.ndarray, np.ndarray]:
     # A window wider than 2^31 pixels is clipped to the image anyway.
     big = float(2**31 - 1)
     return np.minimum(half_u, big).astype(np.int64), np.minimum(half_v, big).astype(np.int64)
+
+
+#: Estimated pixel visits below which one thread is faster than starting several.
+_PARALLEL_MIN_WORK = 200_000
+
+
+def default_threads() -> int:
+    """Threads :func:`jbf_expand` uses by default (see its ``threads`` parameter)."""
+    for var in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS"):
+        if os.environ.get(var, "").strip() == "1":
+            return 1  # a worker process of a batch: one thread per process
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+# Python threads run the nogil band kernels in parallel: no OpenMP runtime (its idle threads
+# cost milliseconds to wake on some virtual machines, and it is not fork-safe). One pool per
+# process: a forked child builds its own.
+_POOL: tuple[int, int, object] | None = None
+
+
+def _thread_pool(workers: int):
+    global _POOL
+    if _POOL is None or _POOL[0] != os.getpid() or _POOL[1] < workers:
+        from concurrent.futures import ThreadPoolExecutor
+
+        pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="sparsetools-jbf")
+        _POOL = (os.getpid(), workers, pool)
+    return _POOL[2]
+
+
+def _row_bands(rows, half_v, half_u, height: int, width: int, reach: int, threads: int):
+    """Row edges of ``threads`` bands of about equal work (None: one thread is enough).
+
+    The work of a row is the sum of the window widths of the seeds whose window covers it
+    (windows cut to ``reach`` pixels, the pruning radius).
+    """
+    if threads < 2:
+        return None
+    hv = np.minimum(half_v, reach)
+    width_px = 2 * np.minimum(np.minimum(half_u, reach), width) + 1
+    top = np.clip(rows - hv, 0, height)
+    bottom = np.clip(rows + hv + 1, 0, height)
+    change = np.zeros(height + 1)
+    np.add.at(change, top, width_px)
+    np.add.at(change, bottom, -width_px)
+    total = np.cumsum(np.cumsum(change[:-1]))
+    if total[-1] < _PARALLEL_MIN_WORK:
+        return None
+    inner = np.searchsorted(total, total[-1] * np.arange(1, threads) / threads)
+    edges = np.unique(np.concatenate([[0], inner + 1, [height]]).clip(0, height))
+    return edges.astype(np.int64) if edges.size > 2 else None
 
 
 def _expand(
@@ -251,11 +336,14 @@ def _expand(
     kernel,
     conflict,
     order=None,
+    threads=None,
+    edges=None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Build the lookup tables and run the compiled kernel.
 
     ``order`` is the order in which the kernel visits the seeds (default: nearest first, which
-    is fastest); the result does not depend on it, and the tests check that with random ones.
+    is fastest), ``edges`` the row bands of the threaded kernel (default: from ``threads``);
+    the result depends on neither, and the tests check that with random ones.
     """
     height, width = guide.shape[:2]
     use_spatial = kernel in ("jbf", "spatial")
@@ -267,8 +355,10 @@ def _expand(
     # exact: for the spatial one it is the disc of radius r_max. The running minimum is a
     # no-op for any sane sigma (consecutive arguments differ by far more than exp's rounding
     # error); it guarantees the monotonicity the kernel's binary search relies on.
+    reach = max(height, width)
     if use_spatial:
         r_max = pruning_radius(sigma_s, threshold)
+        reach = r_max
         hu = int(min(half_u.max(), width - 1))
         hv = int(min(half_v.max(), height - 1))
         r2_limit = min(r_max * r_max, hu * hu + hv * hv)
@@ -289,10 +379,12 @@ def _expand(
         # Nearest seeds first: with conflict="nearest" a pixel already taken by a nearer seed
         # is then skipped before its confidence is computed.
         order = np.argsort(depths, kind="stable")
+    if edges is None:
+        n_threads = default_threads() if threads is None else int(threads)
+        edges = _row_bands(rows, half_v, half_u, height, width, reach, n_threads)
     # One block for both outputs: a single allocation is much cheaper than two fresh ones.
     out = np.empty((2, height, width), np.float32)
-    kernel_fn = _expand_rgb if rgb else _expand_gray
-    kernel_fn(
+    args = (
         np.ascontiguousarray(rows[order], dtype=np.int64),
         np.ascontiguousarray(cols[order], dtype=np.int64),
         np.ascontiguousarray(depths[order], dtype=np.float32),
@@ -308,290 +400,29 @@ def _expand(
         out[0],
         out[1],
     )
+    if edges is None:
+        (expand_rgb if rgb else expand_gray)(*args)
+    else:
+        _expand_bands(args, rgb, [int(e) for e in edges])
     return out[0], out[1]
 
 
-# -- compiled kernel ----------------------------------------------------------------------------
-#
-# For every seed the kernels visit the rows of its window, cut to the pruning disc, in two
-# passes per row:
-#
-# 1. a candidate mask, computed with affine loads only so that LLVM vectorises it: a pixel at
-#    offset (i, j) passes iff its squared intensity difference t is <= pass_t[j, i], the
-#    largest t that passes at that offset (an exact integer form of C >= threshold, see
-#    _offset_table), and, for conflict="nearest", it is not already taken by a nearer seed;
-# 2. the few candidates, found 8 mask bytes at a time, get their confidence from the lookup
-#    tables and are updated.
-#
-# Loop indices start at 0 so that numba emits no negative-index wraparound code.
-
-# Internal confidence of a seed pixel: above any real confidence, so nothing replaces it.
-_SEED_CONF = np.float32(2.0)
-_ANY_T = 1 << 30  # passes whatever the intensity difference (above 3 * 255^2)
-_BYTES_LOW = np.uint64(0x0101010101010101)
-_BYTES_GATHER = np.uint64(0x0102040810204080)
-
-
-@numba.njit(cache=True, nogil=True)
-def _largest_passing_t(w, range_lut, threshold):  # pragma: no cover - compiled
-    """Largest t with ``w * range_lut[t] >= threshold`` (-1: none).
-
-    ``range_lut`` is non-increasing and multiplying by ``w > 0`` is monotone in IEEE
-    arithmetic, so the passing t form a prefix and a binary search finds its end exactly.
-    """
-    if not (w * range_lut[0] >= threshold):
-        return -1
-    lo = 0
-    hi = range_lut.shape[0] - 1
-    while lo < hi:
-        mid = (lo + hi + 1) // 2
-        if w * range_lut[mid] >= threshold:
-            lo = mid
-        else:
-            hi = mid - 1
-    return lo
-
-
-@numba.njit(cache=True, nogil=True)
-def _offset_table(spatial_lut, range_lut, use_spatial, use_range, threshold, height, width):
-    """Largest passing squared intensity difference at each pixel offset.
-
-    Returns ``(pass_t, half_width, center)``. With the spatial kernel, ``pass_t[j, center + i]``
-    is the table for offsets (i, j), |i|, |j| <= R (the disc radius), and ``half_width[j]``
-    the largest |i| that can pass in row offset j (-1: none). Without it, every offset is
-    alike: one row of ``2 width + 1`` entries and no row limit.
-    """  # pragma: no cover - compiled
-    if not use_spatial:
-        t = _largest_passing_t(1.0, range_lut, threshold) if use_range else _ANY_T
-        pass_t = np.full((1, 2 * width + 1), t, dtype=np.int32)
-        half_width = np.full(height + 1, width + 1, dtype=np.int64)
-        return pass_t, half_width, width
-    r2_last = spatial_lut.shape[0] - 1
-    R = np.int64(np.sqrt(r2_last)) + 1
-    pass_t = np.full((R + 1, 2 * R + 1), -1, dtype=np.int32)
-    half_width = np.full(R + 1, -1, dtype=np.int64)
-    for j in range(R + 1):
-        for i in range(R + 1):
-            r2 = i * i + j * j
-            if r2 > r2_last:
-                break
-            if use_range:
-                t = _largest_passing_t(spatial_lut[r2], range_lut, threshold)
-            else:
-                t = _ANY_T if spatial_lut[r2] >= threshold else -1
-            pass_t[j, R + i] = t
-            pass_t[j, R - i] = t
-            if t >= 0:
-                half_width[j] = i
-    return pass_t, half_width, R
-
-
-@numba.njit(cache=True, nogil=True)
-def _byte_positions():  # pragma: no cover - compiled
-    """For each 8-bit pattern: how many bits are set, and their positions."""
-    positions = np.zeros((256, 8), dtype=np.int64)
-    counts = np.zeros(256, dtype=np.int64)
-    for b in range(256):
-        c = 0
-        for p in range(8):
-            if (b >> p) & 1:
-                positions[b, c] = p
-                c += 1
-        counts[b] = c
-    return positions, counts
-
-
-@numba.njit(cache=True, nogil=True)
-def _mark_seeds(rows, cols, depths, depth, conf, value):  # pragma: no cover - compiled
-    for s in range(rows.shape[0]):
-        depth[rows[s], cols[s]] = depths[s]
-        conf[rows[s], cols[s]] = value
-
-
-@numba.njit(cache=True, nogil=True)
-def _better(d, c, bd, bc, max_confidence):  # pragma: no cover - compiled
-    """Whether (d, c) replaces the current (bd, bc) of a pixel that is not a seed.
-
-    A total order on (depth, confidence) pairs, so the result does not depend on the order
-    of the seeds (equal pairs are the same output).
-    """
-    if bd == 0:
-        return True
-    if max_confidence:
-        return c > bc or (c == bc and d < bd)
-    return d < bd or (d == bd and c > bc)
-
-
-@numba.njit(cache=True, nogil=True)
-def _expand_gray(
-    rows,
-    cols,
-    depths,
-    half_u,
-    half_v,
-    guide,
-    spatial_lut,
-    range_lut,
-    use_spatial,
-    use_range,
-    threshold,
-    max_confidence,
-    depth,
-    conf,
-):  # pragma: no cover - compiled
-    """Kernel for an (H, W) uint8 guidance (see :func:`_expand`)."""
-    height, width = guide.shape
-    depth[:, :] = 0.0
-    conf[:, :] = 0.0
-    _mark_seeds(rows, cols, depths, depth, conf, _SEED_CONF)
-    pass_t, half_width, center = _offset_table(
-        spatial_lut, range_lut, use_spatial, use_range, threshold, height, width
-    )
-    positions, counts = _byte_positions()
-    mask = np.zeros(8 * ((width + 7) // 8 + 1), dtype=np.uint8)
-    words = mask.view(np.uint64)
-    for s in range(rows.shape[0]):
-        y0 = rows[s]
-        x0 = cols[s]
-        d = depths[s]
-        g0 = np.int32(guide[y0, x0])
-        hv = min(half_v[s], half_width.shape[0] - 1)
-        for y in range(max(y0 - hv, 0), min(y0 + hv, height - 1) + 1):
-            j = abs(y - y0)
-            hu = min(half_u[s], half_width[j])
-            left = max(x0 - hu, 0)
-            right = min(x0 + hu, width - 1) + 1
-            m = right - left
-            if m <= 0:
-                continue
-            g_seg = guide[y, left:right]
-            d_seg = depth[y, left:right]
-            t_seg = pass_t[j if use_spatial else 0, center + left - x0 : center + right - x0]
-            if max_confidence:
-                for k in range(m):
-                    diff = np.int32(g_seg[k]) - g0
-                    mask[k] = np.uint8(diff * diff <= t_seg[k])
-            else:
-                for k in range(m):
-                    diff = np.int32(g_seg[k]) - g0
-                    bd = d_seg[k]
-                    mask[k] = np.uint8((diff * diff <= t_seg[k]) & ((bd == 0) | (bd >= d)))
-            n_words = (m + 7) // 8
-            for k in range(m, n_words * 8):
-                mask[k] = 0
-            c_seg = conf[y, left:right]
-            j2 = (y - y0) * (y - y0)
-            for w in range(n_words):
-                word = words[w]
-                if word == 0:
-                    continue
-                b = ((word & _BYTES_LOW) * _BYTES_GATHER) >> np.uint64(56)
-                for p in range(counts[b]):
-                    k = w * 8 + positions[b, p]
-                    bc = c_seg[k]
-                    if bc == _SEED_CONF:
-                        continue
-                    t = 0
-                    if use_range:
-                        diff = np.int64(g_seg[k]) - g0
-                        t = diff * diff
-                    if use_spatial:
-                        i = left + k - x0
-                        c = np.float32(spatial_lut[i * i + j2] * range_lut[t])
-                    else:
-                        c = np.float32(range_lut[t])
-                    if _better(d, c, d_seg[k], bc, max_confidence):
-                        d_seg[k] = d
-                        c_seg[k] = c
-    _mark_seeds(rows, cols, depths, depth, conf, np.float32(1.0))
-
-
-@numba.njit(cache=True, nogil=True)
-def _expand_rgb(
-    rows,
-    cols,
-    depths,
-    half_u,
-    half_v,
-    guide,
-    spatial_lut,
-    range_lut,
-    use_spatial,
-    use_range,
-    threshold,
-    max_confidence,
-    depth,
-    conf,
-):  # pragma: no cover - compiled
-    """Kernel for an (H, W, 3) uint8 guidance compared by Euclidean RGB distance."""
-    height, width, _ = guide.shape
-    depth[:, :] = 0.0
-    conf[:, :] = 0.0
-    _mark_seeds(rows, cols, depths, depth, conf, _SEED_CONF)
-    pass_t, half_width, center = _offset_table(
-        spatial_lut, range_lut, use_spatial, use_range, threshold, height, width
-    )
-    positions, counts = _byte_positions()
-    mask = np.zeros(8 * ((width + 7) // 8 + 1), dtype=np.uint8)
-    words = mask.view(np.uint64)
-    for s in range(rows.shape[0]):
-        y0 = rows[s]
-        x0 = cols[s]
-        d = depths[s]
-        r0 = np.int32(guide[y0, x0, 0])
-        g0 = np.int32(guide[y0, x0, 1])
-        b0 = np.int32(guide[y0, x0, 2])
-        hv = min(half_v[s], half_width.shape[0] - 1)
-        for y in range(max(y0 - hv, 0), min(y0 + hv, height - 1) + 1):
-            j = abs(y - y0)
-            hu = min(half_u[s], half_width[j])
-            left = max(x0 - hu, 0)
-            right = min(x0 + hu, width - 1) + 1
-            m = right - left
-            if m <= 0:
-                continue
-            p_seg = guide[y, left:right]
-            d_seg = depth[y, left:right]
-            t_seg = pass_t[j if use_spatial else 0, center + left - x0 : center + right - x0]
-            for k in range(m):
-                dr = np.int32(p_seg[k, 0]) - r0
-                dg = np.int32(p_seg[k, 1]) - g0
-                db = np.int32(p_seg[k, 2]) - b0
-                ok = dr * dr + dg * dg + db * db <= t_seg[k]
-                if not max_confidence:
-                    bd = d_seg[k]
-                    ok = ok & ((bd == 0) | (bd >= d))
-                mask[k] = np.uint8(ok)
-            n_words = (m + 7) // 8
-            for k in range(m, n_words * 8):
-                mask[k] = 0
-            c_seg = conf[y, left:right]
-            j2 = (y - y0) * (y - y0)
-            for w in range(n_words):
-                word = words[w]
-                if word == 0:
-                    continue
-                b = ((word & _BYTES_LOW) * _BYTES_GATHER) >> np.uint64(56)
-                for p in range(counts[b]):
-                    k = w * 8 + positions[b, p]
-                    bc = c_seg[k]
-                    if bc == _SEED_CONF:
-                        continue
-                    t = 0
-                    if use_range:
-                        dr = np.int64(p_seg[k, 0]) - r0
-                        dg = np.int64(p_seg[k, 1]) - g0
-                        db = np.int64(p_seg[k, 2]) - b0
-                        t = dr * dr + dg * dg + db * db
-                    if use_spatial:
-                        i = left + k - x0
-                        c = np.float32(spatial_lut[i * i + j2] * range_lut[t])
-                    else:
-                        c = np.float32(range_lut[t])
-                    if _better(d, c, d_seg[k], bc, max_confidence):
-                        d_seg[k] = d
-                        c_seg[k] = c
-    _mark_seeds(rows, cols, depths, depth, conf, np.float32(1.0))
+def _expand_bands(args, rgb: bool, edges: list[int]) -> None:
+    """The compiled expansion on row bands ``edges[b]:edges[b + 1]``, one per thread."""
+    (rows, cols, depths, half_u, half_v, guide, spatial_lut, range_lut, use_spatial, use_range,
+     threshold, max_confidence, depth, conf) = args  # fmt: skip
+    tables = prologue(rows, cols, depths, spatial_lut, range_lut, use_spatial, use_range,
+                      threshold, depth, conf)  # fmt: skip
+    band = band_rgb if rgb else band_gray
+    head = (rows, cols, depths, half_u, half_v, guide, spatial_lut, range_lut, use_spatial,
+            use_range, max_confidence, *tables, depth, conf)  # fmt: skip
+    bands = list(itertools.pairwise(edges))
+    pool = _thread_pool(len(bands) - 1) if len(bands) > 1 else None
+    futures = [pool.submit(band, *head, lo, hi) for lo, hi in bands[1:]]
+    band(*head, *bands[0])  # this thread takes the first band
+    for f in futures:
+        f.result()
+    mark_seeds(rows, cols, depths, depth, conf)
 
 
 def height_extend(

@@ -16,22 +16,25 @@ Conventions (METHODS.md sections 0-1):
   y, then z) and only exact duplicates by the smallest index, so it is independent of point
   order up to exact duplicates.
 
-The z-buffer is one pass over the points in a numba kernel (a scatter with a min), so its
-cost is O(N) with no sort. This module imports numba: import it where it is used (the
-top-level ``sparsetools`` namespace does so lazily).
+The z-buffer is one pass over the points (a scatter with a min), so its cost is O(N) with no
+sort. It runs in numpy until a process has projected enough points to pay for loading the
+compiled numba loop (:data:`COMPILED_AFTER_POINTS`); both give the same maps bit for bit. The
+index map (:func:`project_points_with_index`) always uses the compiled loop.
 """
 
 from __future__ import annotations
 
+import math
+import sys
 from collections.abc import Sequence
 
 import numpy as np
-from numba import njit
 
 from ..calibration import Calibration
 from ..errors import ParameterError
 
 __all__ = [
+    "COMPILED_AFTER_POINTS",
     "accumulate_sweeps",
     "nuscenes_T_cam_from_sensor",
     "project_points",
@@ -41,83 +44,138 @@ __all__ = [
     "sparse_from_depth",
 ]
 
-# -- kernels ------------------------------------------------------------------------------------
-# One pass over the points, a scatter with a min: O(N), no sort, no allocation per point.
-# The arithmetic is float64 whatever the input dtype, in the order a matrix product would use,
-# so an independent numpy implementation lands every point in the same pixel.
+# -- the z-buffer ---------------------------------------------------------------------------------
+# Two exact implementations of one pass "project, filter, keep the smallest depth per pixel":
+# numpy (below) and a compiled numba loop (:mod:`._projection_kernels`). Both compute in
+# float64 in the order ``M[r, 0] x + M[r, 1] y + M[r, 2] z + M[r, 3]``, without fused
+# multiply-adds, so they give the same maps bit for bit (tests/test_speed_equivalence.py).
+# numba's load costs 0.5-1 s per process, the numpy pass (a float32 pre-selection of the
+# points that can land, then the exact float64 pass on those) about 1 ms more than the compiled
+# one per 120k-point KITTI frame: a process starts with numpy and switches once the points it
+# has projected would have paid for the load (a ski-rental rule: never more than twice the
+# cost of the better choice made in hindsight).
+
+#: Points a process projects with numpy before it loads the compiled kernel.
+COMPILED_AFTER_POINTS = 80_000_000
+_points_projected = 0
 
 
-@njit(cache=True, nogil=True)
-def _zbuffer_depth(points, M, min_depth, max_depth, offset, depth):  # pragma: no cover - jitted
+def _use_compiled(n_points: int) -> bool:
+    global _points_projected
+    if "sparsetools.ops._projection_kernels" in sys.modules:  # loaded already: free to use
+        return True
+    _points_projected += n_points
+    return _points_projected > COMPILED_AFTER_POINTS
+
+
+def _affine_row(M: np.ndarray, r: int, x, y, z) -> np.ndarray:
+    """``M[r, 0] x + M[r, 1] y + M[r, 2] z + M[r, 3]`` in float64, left to right."""
+    out = np.multiply(x, M[r, 0], dtype=np.float64)
+    tmp = np.multiply(y, M[r, 1], dtype=np.float64)
+    out += tmp
+    np.multiply(z, M[r, 2], out=tmp, dtype=np.float64)
+    out += tmp
+    out += M[r, 3]
+    return out
+
+
+#: Clouds smaller than this skip the float32 pre-selection (the exact pass is cheap already).
+_PRESELECT_MIN_POINTS = 4096
+_EPS32 = float(np.finfo(np.float32).eps)
+
+
+def _candidates(points, M, min_depth, max_depth, offset, shape) -> np.ndarray | None:
+    """Rows that may land in the image: a superset of those the exact test keeps (None: all).
+
+    A point lands when ``min_depth < w <= max_depth`` and ``rint(U / w) + offset`` lies in
+    ``0 .. width - 1`` (likewise for V), which for ``w > 0`` implies the five linear
+    conditions ``w > min_depth``, ``w <= max_depth``, ``U >= c_lo w``, ``U <= c_hi w`` (and
+    V's) with ``c_lo = -offset - 0.5``, ``c_hi = width - 1 - offset + 0.5``. They are
+    evaluated for all points at once in float32 (one small matrix product) and each is
+    relaxed by 16 float32 epsilons of its largest possible term sum ``S`` (every coordinate
+    bounded by the cloud's largest magnitude): more than any float32 rounding of the product
+    and of the coefficients, and of the float64 rounding of the exact test. So no point that
+    lands is dropped, and the exact float64 pass then runs on the few candidates only.
+    """
+    if points.shape[0] < _PRESELECT_MIN_POINTS:
+        return None
+    bound = max(abs(float(points.min())), abs(float(points.max())))  # NaN/Inf: not finite
+    if not math.isfinite(bound):
+        return None
+    height, width = shape
+    c_lo = -offset - 0.5
+    cu_hi = width - 1 - offset + 0.5
+    cv_hi = height - 1 - offset + 0.5
+    rows = np.stack([M[2], M[0] - c_lo * M[2], cu_hi * M[2] - M[0],
+                     M[1] - c_lo * M[2], cv_hi * M[2] - M[1]])  # fmt: skip
+    weight = np.abs(np.stack([M[2], M[0], M[0], M[1], M[1]]))
+    weight += np.abs([0.0, c_lo, cu_hi, c_lo, cv_hi])[:, None] * np.abs(M[2])[None, :]
+    term_sum = weight[:, :3].sum(axis=1) * bound + weight[:, 3]
+    if not np.all(term_sum < 1e30):  # float32 could overflow: no pre-selection
+        return None
+    slack = 16.0 * _EPS32 * term_sum
+    linear = rows[:, :3].astype(np.float32) @ points[:, :3].T  # (5, N)
+    # float32 thresholds rounded outwards, so that the comparisons stay in float32 and still
+    # keep every point the float64 thresholds would.
+    keep = linear[0] > _float32_below(min_depth - rows[0, 3] - slack[0])
+    keep &= linear[0] <= _float32_above(max_depth - rows[0, 3] + slack[0])
+    for k in range(1, 5):
+        keep &= linear[k] >= _float32_below(-rows[k, 3] - slack[k])
+    return np.flatnonzero(keep)
+
+
+def _float32_below(value: float) -> np.float32:
+    """The largest float32 <= ``value``."""
+    f = np.float32(value)
+    return f if f <= value else np.nextafter(f, np.float32(-np.inf))
+
+
+def _float32_above(value: float) -> np.float32:
+    """The smallest float32 >= ``value``."""
+    f = np.float32(value)
+    return f if f >= value else np.nextafter(f, np.float32(np.inf))
+
+
+def _zbuffer_depth_numpy(points, M, min_depth, max_depth, offset, depth) -> int:
+    """numpy twin of :func:`._projection_kernels.zbuffer_depth` (same arguments and result)."""
     height, width = depth.shape
-    n_in = 0
-    for i in range(points.shape[0]):
-        x = np.float64(points[i, 0])
-        y = np.float64(points[i, 1])
-        z = np.float64(points[i, 2])
-        w = M[2, 0] * x + M[2, 1] * y + M[2, 2] * z + M[2, 3]
-        # Written so that NaN fails every test and is dropped.
-        if not (w > min_depth and w <= max_depth):
-            continue
-        fu = np.rint((M[0, 0] * x + M[0, 1] * y + M[0, 2] * z + M[0, 3]) / w) + offset
-        fv = np.rint((M[1, 0] * x + M[1, 1] * y + M[1, 2] * z + M[1, 3]) / w) + offset
-        if not (fu >= 0.0 and fu < width and fv >= 0.0 and fv < height):
-            continue
-        d = np.float32(w)
-        if d <= 0.0:  # below float32's range: cannot be told from "empty"
-            continue
-        n_in += 1
-        iu = int(fu)
-        iv = int(fv)
-        cur = depth[iv, iu]
-        if cur == 0.0 or d < cur:
-            depth[iv, iu] = d
-    return n_in
+    rows = _candidates(points, M, min_depth, max_depth, offset, depth.shape)
+    if rows is not None:
+        points = points[rows]
+    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    w = _affine_row(M, 2, x, y, z)
+    front = np.flatnonzero((w > min_depth) & (w <= max_depth))  # NaN fails both
+    x, y, z, w = x[front], y[front], z[front], w[front]
+    fu = _affine_row(M, 0, x, y, z)
+    fu /= w
+    np.rint(fu, out=fu)
+    fu += offset
+    fv = _affine_row(M, 1, x, y, z)
+    fv /= w
+    np.rint(fv, out=fv)
+    fv += offset
+    d = w.astype(np.float32)
+    inside = (fu >= 0.0) & (fu < width) & (fv >= 0.0) & (fv < height) & (d > 0.0)
+    hit = np.flatnonzero(inside)
+    pixel = fv[hit].astype(np.intp)
+    pixel *= width
+    pixel += fu[hit].astype(np.intp)
+    flat = depth.reshape(-1)
+    # Only the pixels hit are reset for the minimum: no pass over the whole image, and a pixel
+    # reached by an Inf depth alone holds Inf, as in the compiled loop.
+    flat[pixel] = np.inf
+    np.minimum.at(flat, pixel, d[hit])
+    return int(hit.size)
 
 
-@njit(cache=True, nogil=True)
-def _zbuffer_index(points, M, min_depth, max_depth, offset, depth, index):  # pragma: no cover
-    height, width = depth.shape
-    # Exact float64 depth of each point that landed: ties are judged in float64, not in the
-    # float32 of the output map.
-    w_of = np.empty(points.shape[0], dtype=np.float64)
-    n_in = 0
-    for i in range(points.shape[0]):
-        x = np.float64(points[i, 0])
-        y = np.float64(points[i, 1])
-        z = np.float64(points[i, 2])
-        w = M[2, 0] * x + M[2, 1] * y + M[2, 2] * z + M[2, 3]
-        if not (w > min_depth and w <= max_depth):
-            continue
-        fu = np.rint((M[0, 0] * x + M[0, 1] * y + M[0, 2] * z + M[0, 3]) / w) + offset
-        fv = np.rint((M[1, 0] * x + M[1, 1] * y + M[1, 2] * z + M[1, 3]) / w) + offset
-        if not (fu >= 0.0 and fu < width and fv >= 0.0 and fv < height):
-            continue
-        d = np.float32(w)
-        if d <= 0.0:
-            continue
-        n_in += 1
-        w_of[i] = w
-        iu = int(fu)
-        iv = int(fv)
-        j = index[iv, iu]
-        if j < 0 or w < w_of[j] or (w == w_of[j] and _before(points, i, j)):
-            index[iv, iu] = i
-            depth[iv, iu] = d
-    return n_in
+def _zbuffer_depth(points, M, min_depth, max_depth, offset, depth) -> int:
+    if _use_compiled(points.shape[0]):
+        from ._projection_kernels import zbuffer_depth
 
-
-@njit(cache=True, nogil=True, inline="always")
-def _before(points, i, j):  # pragma: no cover - jitted
-    # A tie in depth goes to the lexicographically smaller (x, y, z): a rule on content, not on
-    # position, so the winner does not depend on point order. Exact duplicates keep the earlier
-    # (smaller) index because i > j here.
-    for c in range(3):
-        a = np.float64(points[i, c])
-        b = np.float64(points[j, c])
-        if a != b:
-            return a < b
-    return False
+        return int(zbuffer_depth(points, M, min_depth, max_depth, offset, depth))
+    # Inf and NaN coordinates are dropped by the tests, silently, as in the compiled loop.
+    with np.errstate(all="ignore"):
+        return _zbuffer_depth_numpy(points, M, min_depth, max_depth, offset, depth)
 
 
 def _check_points(points: np.ndarray) -> np.ndarray:
@@ -256,7 +314,9 @@ def project_points_with_index(
     depth = np.zeros((height, width), dtype=np.float32)
     index = np.full((height, width), -1, dtype=np.int64)
     if points.shape[0]:
-        _zbuffer_index(points, M, lo, hi, offset, depth, index)
+        from ._projection_kernels import zbuffer_index
+
+        zbuffer_index(points, M, lo, hi, offset, depth, index)
     return depth, index
 
 

@@ -13,13 +13,13 @@ METHODS.md section 2.
 - :func:`column_rings`: clouds that carry the ring in a column (nuScenes LIDAR_TOP).
 - :func:`recover_rings`: scan order, validated (exactly ``n_lasers`` rings), with a logged
   fall back to elevation.
-- :func:`ring_table`, :func:`ring_elevations`: per-ring statistics.
+- :func:`ring_table`, :func:`ring_elevations`: per-ring statistics (:mod:`.ring_stats`,
+  re-exported here).
 """
 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -34,9 +34,9 @@ from .lidar_profile import (
     _check_ring,
     _elevation_deg,
     _fit_cones,
-    _grouped_median,
     _polar,
 )
+from .ring_stats import RingTable, ring_elevations, ring_table
 
 __all__ = [
     "RING_METHODS",
@@ -85,22 +85,37 @@ def scan_order_rings(points: np.ndarray, *, n_lasers: int | None = None) -> np.n
     if n == 0:
         return np.zeros(0, np.int32)
     # float32 is ample for telling a ~0.2-deg step from a ~360-deg jump, and twice as fast.
-    xy = points[:, :2].astype(np.float32)
+    xy = points[:, :2].astype(np.float32, copy=False)
     az = np.degrees(np.arctan2(xy[:, 1], xy[:, 0]))
     step = np.diff(az)
-    step = np.where(step > 180, step - 360, np.where(step < -180, step + 360, step))
-    if np.count_nonzero(step < 0) > step.size // 2:  # the median step is negative
+    # Steps wrapped into [-180, 180] are negative for -180 <= step < 0 and 180 < step < 360.
+    backwards = np.count_nonzero((step < 0) & (step >= -180)) + np.count_nonzero(
+        (step > 180) & (step < 360)
+    )
+    if backwards > step.size // 2:  # the median step is negative
         az = -az
     first = None
     for cut in (0.0, 180.0):
-        a = (az - cut) % 360.0
-        ring = np.zeros(n, np.int32)
-        np.cumsum(np.diff(a) < -_JUMP_DEG, out=ring[1:])
-        if n_lasers is None or int(ring[-1]) + 1 == n_lasers:
-            return ring
-        if first is None:
+        starts = np.flatnonzero(np.diff(_angle_from(az, cut)) < -_JUMP_DEG) + 1
+        if n_lasers is None or starts.size + 1 == n_lasers or first is None:
+            # Rings are runs of the scan: ring k spans starts[k-1]:starts[k].
+            lengths = np.diff(starts, prepend=0, append=n)
+            ring = np.repeat(np.arange(starts.size + 1, dtype=np.int32), lengths)
+            if n_lasers is None or starts.size + 1 == n_lasers:
+                return ring
             first = ring
     return first
+
+
+def _angle_from(az: np.ndarray, cut: float) -> np.ndarray:
+    """``(az - cut) % 360`` (float32 degrees, az in about [-180, 180]) without the slow
+    remainder: for ``-360 < a < 0`` numpy's remainder is ``a + 360``, rounded alike."""
+    a = az - np.float32(cut)
+    beyond = a <= -360.0  # az a hair past -180 deg (float32 pi) with the back cut
+    if beyond.any():
+        a[beyond] = np.remainder(a[beyond], np.float32(360.0))
+    np.add(a, np.float32(360.0), out=a, where=a < 0)
+    return a
 
 
 def column_rings(points: np.ndarray, *, n_lasers: int = 32, column: int = 4) -> np.ndarray:
@@ -485,144 +500,3 @@ def recover_rings_with_method(
         points, n_lasers=n_lasers, profile=profile, profile_tolerance_deg=profile_tolerance_deg
     )
     return ring, "elevation"
-
-
-# -- diagnostics ---------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class RingTable:
-    """Per-ring diagnostics of a cloud (rings with at least one point).
-
-    Attributes
-    ----------
-    ring : (K,) int
-    points : (K,) int
-    elevation_deg : (K,) float, median elevation over all the ring's points
-    far_elevation_deg : (K,) float, median over points beyond ``far_range`` (NaN: none)
-    far_points : (K,) int
-    far_range : float, metres
-    """
-
-    ring: np.ndarray
-    points: np.ndarray
-    elevation_deg: np.ndarray
-    far_elevation_deg: np.ndarray
-    far_points: np.ndarray
-    far_range: float = 20.0
-
-    @property
-    def n_rings(self) -> int:
-        return int(self.ring.shape[0])
-
-    @property
-    def monotonic(self) -> bool:
-        """Whether median elevation strictly decreases with ring index."""
-        return bool(np.all(np.diff(self.elevation_deg) < 0))
-
-    def format(self) -> str:
-        """A plain-text table, one line per ring."""
-        lines = [f"{'ring':>4} {'points':>7} {'elev_deg':>9} {'far_elev_deg':>12} {'far_pts':>7}"]
-        for k, n, e, fe, fn in zip(
-            self.ring,
-            self.points,
-            self.elevation_deg,
-            self.far_elevation_deg,
-            self.far_points,
-            strict=True,
-        ):
-            far = "-" if np.isnan(fe) else f"{fe:.3f}"
-            lines.append(f"{int(k):>4} {int(n):>7} {e:>9.3f} {far:>12} {int(fn):>7}")
-        return "\n".join(lines)
-
-    def as_dict(self) -> dict:
-        return {
-            "rings": self.n_rings,
-            "monotonic": self.monotonic,
-            "far_range_m": self.far_range,
-            "table": [
-                {
-                    "ring": int(k),
-                    "points": int(n),
-                    "elevation_deg": round(float(e), 4),
-                    "far_elevation_deg": None if np.isnan(fe) else round(float(fe), 4),
-                    "far_points": int(fn),
-                }
-                for k, n, e, fe, fn in zip(
-                    self.ring,
-                    self.points,
-                    self.elevation_deg,
-                    self.far_elevation_deg,
-                    self.far_points,
-                    strict=True,
-                )
-            ],
-        }
-
-
-def ring_table(points: np.ndarray, ring: np.ndarray, *, far_range: float = 20.0) -> RingTable:
-    """Rings found, points per ring, median elevation per ring (all points and far points).
-
-    Parameters
-    ----------
-    points : (N, C) float, metres
-    ring : (N,) int
-    far_range : float, metres
-        Horizontal range beyond which a point counts as far.
-    """
-    points = _check_points(points, allow_empty=True)
-    ring = np.asarray(ring)
-    if ring.shape != (points.shape[0],) or (ring.size and ring.dtype.kind not in "iu"):
-        raise ParameterError(f"ring must be ({points.shape[0]},) integers, got {ring.shape}")
-    if ring.size and ring.min() < 0:
-        raise ParameterError("ring values must be >= 0")
-    k = int(ring.max()) + 1 if ring.size else 0
-    ring = ring.astype(np.intp)
-    r, z = _polar(points)
-    el = np.degrees(np.arctan2(z, r))
-    med, count = _grouped_median(el, ring, k)
-    far = r > far_range
-    far_med, far_count = _grouped_median(el[far], ring[far], k)
-    present = np.flatnonzero(count > 0)
-    return RingTable(
-        ring=present,
-        points=count[present],
-        elevation_deg=med[present],
-        far_elevation_deg=far_med[present],
-        far_points=far_count[present],
-        far_range=float(far_range),
-    )
-
-
-def ring_elevations(
-    points: np.ndarray,
-    ring: np.ndarray,
-    *,
-    n_lasers: int = 64,
-    far_range: float = 20.0,
-    min_far_points: int = 10,
-) -> np.ndarray:
-    """Apparent elevation of each laser (deg): median over far points, else over all points.
-
-    Far points (horizontal range > ``far_range``) are used because at short range the
-    emitters' height offset lifts the apparent elevation by a degree or more. Lasers with
-    fewer than ``min_far_points`` far points (those aimed at the nearby ground) fall back to
-    the median over all their points; lasers without points get NaN.
-
-    Returns
-    -------
-    (n_lasers,) float64, degrees
-    """
-    points = _check_points(points, allow_empty=True)
-    n_lasers = _check_n_lasers(n_lasers)
-    ring = _check_ring(ring, points.shape[0], n_lasers).astype(np.intp)
-    r, z = _polar(points)
-    el = np.degrees(np.arctan2(z, r))
-    far = r > far_range
-    far_med, far_count = _grouped_median(el[far], ring[far], n_lasers)
-    few = far_count < min_far_points
-    if few.any():
-        near = few[ring]
-        all_med, _ = _grouped_median(el[near], ring[near], n_lasers)
-        far_med = np.where(few, all_med, far_med)
-    return far_med

@@ -18,6 +18,7 @@ returning per-frame statistics; it writes its outputs itself, atomically). The r
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import time
@@ -61,11 +62,11 @@ class FrameTask(Generic[I]):
     outputs: Mapping[str, Path] = field(default_factory=dict)
     sources: tuple[Path, ...] = ()
 
-    @property
+    @functools.cached_property
     def frame_id(self) -> str:
         return str(self.key)
 
-    @property
+    @functools.cached_property
     def output_paths(self) -> tuple[Path, ...]:
         return tuple(Path(p) for p in self.outputs.values())
 
@@ -104,6 +105,13 @@ class _Guarded:
     def __init__(self, fn: Callable[[FrameTask], dict], debug: bool):
         self.fn = fn
         self.debug = debug
+
+    def prepare(self) -> None:
+        """The job's ``prepare()`` (optional: loads what every frame needs, before a pool
+        forks; see :func:`~.executors.LocalExecutor`)."""
+        prepare = getattr(self.fn, "prepare", None)
+        if callable(prepare):
+            prepare()
 
     def __call__(self, task: FrameTask) -> FrameResult:
         try:

@@ -123,12 +123,56 @@ def _images_and_records(task: FrameTask) -> tuple[list[Path], list[Path]]:
     return images, records
 
 
+def flare_cache_dir() -> Path | None:
+    """Where flare banks are kept between runs: ``SPARSETOOLS_CACHE_DIR``, else
+    ``$XDG_CACHE_HOME/sparsetools``, else ``~/.cache/sparsetools``; None when it cannot be
+    written (each process then builds its bank in memory)."""
+    base = os.environ.get("SPARSETOOLS_CACHE_DIR") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"),
+        "sparsetools",
+    )
+    try:
+        os.makedirs(base, exist_ok=True)
+    except OSError:
+        return None
+    return Path(base) if os.access(base, os.W_OK | os.X_OK) else None
+
+
 @dataclass(frozen=True)
 class LowLightJob:
     """The per-frame job of ``lowlight-synth`` (picklable): read, synthesise every variant,
-    write the night PNGs and their record sidecars."""
+    write the night PNGs and their record sidecars.
+
+    The flare bank (about 1 s to build) comes from the on-disk cache of
+    :func:`flare_cache_dir` (the same arrays, built once per machine and loaded in 0.1 s), so
+    a process, and every worker of a pool, does not build its own.
+    """
 
     settings: LowLightSettings
+
+    def prepare(self) -> None:
+        """Load what every frame uses (the noise model's SciPy, the flare bank, the codecs)
+        with one tiny image: called once in the parent before a pool forks, so workers inherit
+        it."""
+        import numpy as np
+
+        from ..io.image import import_cv2
+        from ..ops.lowlight import LowLightParams, lowlight
+
+        import_cv2()
+        params = LowLightParams(**self.settings.params)
+        lowlight(np.zeros((8, 8, 3), np.uint8), rng=0, params=params, bank=self.flare_bank(params))
+
+    def flare_bank(self, params):
+        """The bank ``params`` names, from the cache folder (None: lowlight builds it)."""
+        folder = flare_cache_dir() if params.flare else None
+        if folder is None:
+            return None
+        from ..io.flare_bank import cached_flare_bank
+
+        return cached_flare_bank(
+            folder, seed=params.bank_seed, count=params.bank_count, size=params.bank_size
+        )
 
     def config(self) -> dict:
         """JSON-normalised settings (tuples as lists), as stored in every sidecar."""
@@ -154,9 +198,10 @@ class LowLightJob:
         images, records = _images_and_records(task)
         flares = 0
         config = self.config()
+        bank = self.flare_bank(params)
         for k, (img_out, rec_out) in enumerate(zip(images, records, strict=True)):
             rng = frame_rng(s.seed, f"{task.frame_id}:{k}")
-            night, record = lowlight(image, depth=depth, K=K, rng=rng, params=params)
+            night, record = lowlight(image, depth=depth, K=K, rng=rng, params=params, bank=bank)
             write_image(img_out, night)
             row = {
                 "output": img_out.name, "source": inp.image, "depth": inp.depth,

@@ -229,6 +229,14 @@ class ProjectJob:
 
     settings: ProjectSettings
 
+    def prepare(self) -> None:
+        """Load the libraries every frame uses (OpenCV's PNG codec, the calibration writer):
+        called once in the parent before a pool forks, so workers inherit them."""
+        from ..io.calib import write_json_calib  # noqa: F401
+        from ..io.image import encode_depth_png
+
+        encode_depth_png(np.zeros((2, 2), np.float32))
+
     def __call__(self, task: FrameTask[ProjectInput]) -> dict:
         from ..io.calib import write_json_calib
         from ..io.image import write_depth_png

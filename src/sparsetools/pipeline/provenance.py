@@ -182,6 +182,8 @@ class OutputFolder:
         self.new_records: dict[str, FrameRecord] = {}
         self.dropped: set[str] = set()
         self._identity_cache: dict[str, FileIdentity] = {}
+        self._folders: dict[str, str] = {}  # resolved input folders, for file_identity
+        self._out_prefix = os.path.join(os.path.abspath(self.out), "")
         self._lock = None
         self._journal = None
         self.removed_stale = 0
@@ -247,15 +249,16 @@ class OutputFolder:
         key = os.fspath(path)
         ident = self._identity_cache.get(key)
         if ident is None:
-            ident = file_identity(path)
+            ident = file_identity(path, folders=self._folders)
             self._identity_cache[key] = ident
         return ident
 
     def _rel(self, path: Path) -> str:
-        try:
-            return Path(os.path.abspath(path)).relative_to(os.path.abspath(self.out)).as_posix()
-        except ValueError:
-            return os.path.abspath(path)
+        """``path`` relative to the folder (POSIX separators), or absolute when outside it."""
+        full = os.path.abspath(path)
+        if full.startswith(self._out_prefix):
+            return full[len(self._out_prefix) :].replace(os.sep, "/")
+        return "." if full == self._out_prefix[:-1] else full
 
     def plan(self, tasks: Iterable, complete=None, *, shared: Iterable = ()) -> Plan:
         """Split ``tasks`` into what to compute and what is up to date.
