@@ -376,7 +376,7 @@ def test_checkpoint_input_mode_and_corruption(dataset, tmp_path):
 
 def test_bad_config():
     for kw in (
-        {"input_mode": "d"},
+        {"input_mode": "depth"},
         {"loss": "huber"},
         {"optimizer": "lbfgs"},
         {"epochs": 0},

@@ -13,8 +13,27 @@ from .options import (
     json_option,
     max_depth_option,
     output_dir_option,
+    overwrite_option,
+    quiet_debug_options,
 )
 from .train import progress_wanted
+
+
+def _result_files(output: Path, checkpoint: Path | None, *, overwrite: bool) -> list:
+    """The JSON and CSV results as :class:`~sparsetools.pipeline.provenance.OutputFile`, checked
+    before anything is evaluated: a file that ``eval`` did not write is refused (one line
+    naming it and ``--overwrite``); ``eval``'s own earlier results are replaced."""
+    from ..pipeline.provenance import OutputFile
+    from ..train.results import eval_result_paths
+
+    sources = [] if checkpoint is None else [checkpoint]
+    # no settings: a new evaluation replaces eval's own results whatever its options
+    files = [
+        OutputFile(p, "eval", {}, sources, overwrite=overwrite) for p in eval_result_paths(output)
+    ]
+    for f in files:
+        f.up_to_date()  # raises for a file eval did not write
+    return files
 
 
 @click.command("eval")
@@ -68,9 +87,12 @@ from .train import progress_wanted
     required=False,
     file=True,
     help="Results file (.json or .csv; both are written). Default with --checkpoint: "
-    "eval_<split>.json/.csv next to it; with --pred: none.",
+    "eval_<split>.json/.csv next to it; with --pred: none. A file eval did not write is "
+    "refused unless --overwrite.",
 )
+@overwrite_option(help="Replace result files that eval did not write.")
 @json_option(help="Print the results as JSON.")
+@quiet_debug_options
 def eval_(
     dataset,
     checkpoint,
@@ -84,37 +106,39 @@ def eval_(
     device,
     batch_size,
     out_dir,
+    overwrite,
     as_json,
 ):
     """Depth metrics per image, then averaged (AbsRel, SqRel, SqRel-KITTI, RMSE, RMSE log,
     SILog, delta1-3, MAE, iRMSE, iMAE) on pixels with min-depth < gt < max-depth.
 
     Camera-only self-supervised models are median-scaled per image (flagged in the output);
-    for self-supervised models on sequences with true poses, also the pose ATE.
+    for self-supervised models on sequences with true poses, also the pose ATE. --checkpoint
+    needs PyTorch; --pred/--gt does not.
 
     \b
     Examples:
       sparsetools eval --checkpoint out/run/best.pt out/ds --split test
       sparsetools eval --pred results/depth --gt out/scene/depth_gt -o results/metrics.json
     """
-    from ..train.evaluate import (
-        evaluate_checkpoint,
-        evaluate_folders,
-        format_eval_text,
-        write_eval_results,
-    )
-
     if checkpoint is not None and (pred_dir is not None or gt_dir is not None):
         raise click.UsageError("give either --checkpoint with DATASET, or --pred with --gt")
     if checkpoint is None and pred_dir is None:
         raise click.UsageError("give --checkpoint RUN/best.pt DATASET, or --pred DIR --gt DIR")
     if min_depth >= max_depth:
         raise click.BadParameter("must be below --max-depth", param_hint="--min-depth")
-    output = out_dir
     median = {"auto": None, "median": True, "none": False}[scaling]
     if checkpoint is not None:
         if dataset is None:
             raise click.UsageError("--checkpoint needs the DATASET argument")
+        from ..train._torch_required import require_torch
+
+        require_torch("eval --checkpoint")
+        from ..train.evaluate import evaluate_checkpoint
+
+        ckpt_file = checkpoint / "best.pt" if checkpoint.is_dir() else checkpoint
+        output = out_dir if out_dir is not None else ckpt_file.parent / f"eval_{split}.json"
+        files = _result_files(output, ckpt_file, overwrite=overwrite)
         result = evaluate_checkpoint(
             checkpoint,
             dataset,
@@ -127,14 +151,16 @@ def eval_(
             median_scaling=median,
             progress=progress_wanted(),
         )
-        if output is None:
-            output = Path(result.checkpoint).parent / f"eval_{split}.json"
         title = f"{result.checkpoint} on {dataset} [{split}]"
     else:
         if gt_dir is None:
             raise click.UsageError("--pred needs --gt")
         if dataset is not None:
             raise click.UsageError("DATASET is only used with --checkpoint")
+        from ..train.results import evaluate_folders  # numpy only: no torch needed
+
+        output = out_dir
+        files = [] if output is None else _result_files(output, None, overwrite=overwrite)
         result = evaluate_folders(
             pred_dir,
             gt_dir,
@@ -145,7 +171,11 @@ def eval_(
             progress=progress_wanted(),
         )
         title = f"{pred_dir} against {gt_dir}"
+    from ..train.results import format_eval_text, write_eval_results
+
     written = write_eval_results(result, output) if output is not None else []
+    for f in files:
+        f.record()
     if as_json:
         brief = {k: v for k, v in result.to_dict().items() if k != "per_image"}
         brief["written"] = [str(p) for p in written]

@@ -15,9 +15,13 @@ from .options import (
     json_option,
     max_depth_option,
     output_dir_option,
+    quiet_debug_options,
     root_flag,
     seed_option,
 )
+
+#: ``--input`` choices (the channels of each: docs/train.md).
+INPUT_MODES = ("rgb", "rgbd", "rgbdm", "d", "rgbdc")
 
 
 def progress_wanted() -> bool:
@@ -204,10 +208,12 @@ def selfsup_options(f):
 @click.option(
     "--input",
     "input_mode",
-    type=click.Choice(["rgb", "rgbd", "rgbdm"]),
+    type=click.Choice(INPUT_MODES),
     default="rgbd",
     show_default=True,
-    help="Camera only, camera + sparse depth, or + its validity mask.",
+    help="Network input: rgb = camera only; rgbd = + sparse depth; rgbdm = + its validity "
+    "mask; d = sparse depth alone (radar-only baseline); rgbdc = rgb + sparse depth + the "
+    "confidence map of `dataset build --confidence` (JBF).",
 )
 @click.option(
     "--loss",
@@ -319,6 +325,7 @@ def selfsup_options(f):
 )
 @selfsup_options
 @json_option(help="Print the summary as JSON.")
+@quiet_debug_options
 @click.pass_context
 def train(ctx, dataset, out_dir, resume, as_json, self_supervised, **options):
     """Train the early-fusion U-Net on a dataset built by `sparsetools dataset build`.
@@ -340,8 +347,13 @@ def train(ctx, dataset, out_dir, resume, as_json, self_supervised, **options):
       sparsetools train out/ds -o out/run_ss4 --self-supervised --sparse-loss silog
       sparsetools train out/ds -o out/sfe --self-supervised --sparse-loss silog --lidar-encoder sfe
       sparsetools train out/ds -o out/run_sfe_sup --lidar-encoder sfe --width 16
+      sparsetools train out/nus -o out/run_radar --input d
+      sparsetools train out/nus_jbf -o out/run_jbf --input rgbdc
       sparsetools eval --checkpoint out/run_rgbd/best.pt out/ds --split test
     """
+    from ..train._torch_required import require_torch
+
+    require_torch("train")
     from ..train.config import SelfSupSettings, TrainConfig
     from ..train.loop import train as run_training
 

@@ -15,10 +15,21 @@ weights_only=True)`` reads it): format tag and version, kind (``supervised`` or
 for self-supervised runs the pose network and the SBM threshold, the optimizer state, the
 position in training (:class:`TrainingState`) and the torch RNG state. :func:`load_checkpoint`
 checks it and returns a typed :class:`Checkpoint`.
+
+A checkpoint file is untrusted input. :func:`load_checkpoint` refuses, with one
+:class:`FormatError` naming the file, anything but torch's zip format read with
+``weights_only=True`` (no pickled object ever runs; a legacy pickle file is refused before
+torch sees it, and torch's warnings about such files are not printed), a model configuration
+of the wrong types or of an absurd size (width above :data:`~sparsetools.train.config.MAX_WIDTH`:
+checked before any layer is allocated), weights whose names or shapes do not fit that
+configuration (compared with the network built on torch's ``meta`` device, which allocates
+nothing), a training configuration of the wrong types or that contradicts the model's, and a
+training state, optimizer state or RNG state of the wrong structure.
 """
 
 from __future__ import annotations
 
+import json
 import math
 import os
 from dataclasses import dataclass, field
@@ -27,6 +38,15 @@ from pathlib import Path
 import torch
 
 from ..errors import FormatError, OutputError, ParameterError
+from .checkpoint_checks import (
+    CHECKPOINT_FORMAT,
+    check_agreement,
+    check_extras,
+    check_model_config,
+    check_pose_config,
+    check_weights,
+    read_checkpoint_file,
+)
 from .config import TrainConfig
 from .model import INPUT_CHANNELS, DepthCompletionUNet, build_model
 from .runtime import save_torch
@@ -44,15 +64,17 @@ __all__ = [
     "load_weights",
     "model_from_checkpoint",
     "pose_from_checkpoint",
+    "restore_optimizer",
     "save_checkpoint",
 ]
 
-CHECKPOINT_FORMAT = "sparsetools-depth-checkpoint"
 #: 2 added self-supervised checkpoints (``kind``, pose network); version 1 files still load.
 CHECKPOINT_VERSION = 2
 KINDS = ("supervised", "self-supervised")
 #: Files whose presence marks a folder as a run folder.
 RUN_FILES = ("last.pt", "best.pt", "metrics.csv")
+#: The other files a run writes; in a folder without a run they are someone else's.
+OTHER_RUN_FILES = ("config.json", "curves.png", "predictions")
 
 
 @dataclass
@@ -131,6 +153,24 @@ class TrainingState:
 
     @classmethod
     def from_dict(cls, d: dict) -> TrainingState:
+        """The state saved by :meth:`to_dict` (a checkpoint's top level).
+
+        Raises
+        ------
+        KeyError, TypeError, ValueError
+            A missing entry or one of the wrong structure.
+        """
+        if not isinstance(d.get("history"), list) or not all(
+            isinstance(r, dict) for r in d["history"]
+        ):
+            raise TypeError("history must be a list of metrics rows")
+        if not isinstance(d.get("best"), dict):
+            raise TypeError("best must be a mapping")
+        if d.get("epoch_sums") is not None and not isinstance(d["epoch_sums"], dict):
+            raise TypeError("epoch_sums must be a mapping")
+        for name in ("epoch", "batch_in_epoch", "step", "epoch_samples"):
+            if isinstance(d.get(name), bool) or not isinstance(d.get(name), int) or d[name] < 0:
+                raise ValueError(f"{name} must be a non-negative integer")
         sums = d.get("epoch_sums")
         if sums is None:
             sums = {"loss": float(d["epoch_loss_sum"])} if d.get("epoch_samples") else {}
@@ -200,13 +240,25 @@ class Checkpoint:
         return self.model_config.get("lidar_encoder", "none")
 
 
+def _is_run_config(path: Path) -> bool:
+    """Whether ``path`` is the ``config.json`` of a training run (one that stopped before its
+    first checkpoint)."""
+    try:
+        TrainConfig.from_dict(json.loads(path.read_text(encoding="utf-8")))
+    except (OSError, UnicodeDecodeError, ValueError):  # ParameterError is a ValueError
+        return False
+    return True
+
+
 def check_run_dir(out: Path, dataset: Path, resume: bool) -> None:
-    """Refuse a run folder that is a file, inside the dataset, or (without resume) taken.
+    """Refuse a run folder that is a file, inside the dataset, taken, or holding files a run
+    would replace that no run wrote.
 
     Raises
     ------
     OutputError
-        ``out`` is a file, inside ``dataset``, or already holds a run and ``resume`` is off.
+        ``out`` is a file, inside ``dataset``, already holds a run and ``resume`` is off, or
+        holds ``config.json`` (not a run's), ``curves.png`` or ``predictions`` without a run.
     ParameterError
         ``resume`` and there is no ``last.pt`` to continue from.
     """
@@ -227,6 +279,15 @@ def check_run_dir(out: Path, dataset: Path, resume: bool) -> None:
             f"{out} already holds a run ({', '.join(present)}): use --resume to continue it "
             "or choose another folder"
         )
+    for name in OTHER_RUN_FILES:
+        path = out / name
+        if path.exists() or path.is_symlink():
+            if name == "config.json" and path.is_file() and _is_run_config(path):
+                continue  # a run that stopped in its first epoch: it starts again
+            raise OutputError(
+                f"{path} exists and was not written by a training run (a run would replace "
+                "it): choose another folder"
+            )
 
 
 def _state_dict_cpu(module: torch.nn.Module) -> dict:
@@ -281,62 +342,74 @@ def load_checkpoint(path: str | os.PathLike, *, input_mode: str | None = None) -
     Raises
     ------
     FormatError
-        Missing, unreadable or foreign file; weights that do not fit the stored configuration.
+        Missing, unreadable or foreign file (a legacy pickle one included); a model or
+        training configuration of the wrong types, of an absurd size, or contradicting each
+        other; weights that do not fit the stored configuration; a malformed training,
+        optimizer or RNG state (module docstring).
     ParameterError
         ``input_mode`` differs from the checkpoint's.
     """
+    from .selfsup.pose_net import build_pose_net
+
     path = Path(path)
     if path.is_dir():
         path = path / "best.pt"
     if not path.is_file():
         raise FormatError(f"{path}: no such checkpoint")
-    try:
-        raw = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises many types (pickle, zip, runtime) for bad files
-        raise FormatError(
-            f"{path}: not a readable torch checkpoint ({type(exc).__name__})"
-        ) from exc
-    if not isinstance(raw, dict) or raw.get("format") != CHECKPOINT_FORMAT:
-        raise FormatError(f"{path}: not a sparsetools depth checkpoint")
-    if int(raw.get("version", 0)) > CHECKPOINT_VERSION:
-        raise FormatError(
-            f"{path}: checkpoint version {raw['version']} is newer than this sparsetools"
-        )
+    raw = read_checkpoint_file(path)
+    version = raw.get("version", 0)
+    if isinstance(version, bool) or not isinstance(version, int):
+        raise FormatError(f"{path}: checkpoint version must be an integer, got {version!r}")
+    if version > CHECKPOINT_VERSION:
+        raise FormatError(f"{path}: checkpoint version {version} is newer than this sparsetools")
     kind = raw.get("kind", "supervised")
     if kind not in KINDS:
         raise FormatError(f"{path}: unknown checkpoint kind {kind!r}")
-    mc = raw.get("model_config") or {}
-    if input_mode is not None and mc.get("input_mode") != input_mode:
+    mc = check_model_config(raw.get("model_config", {}), path)
+    if input_mode is not None and mc["input_mode"] != input_mode:
         raise ParameterError(
-            f"{path} was trained with input mode '{mc.get('input_mode')}' "
-            f"({INPUT_CHANNELS.get(mc.get('input_mode'), '?')} channels), not '{input_mode}'",
+            f"{path} was trained with input mode '{mc['input_mode']}' "
+            f"({INPUT_CHANNELS[mc['input_mode']]} channels), not '{input_mode}'",
             param="input_mode",
         )
-    stem = (raw.get("model") or {}).get("stem.0.weight")
-    expected = INPUT_CHANNELS.get(mc.get("input_mode"))
-    if stem is None or expected is None or stem.shape[1] != expected:
-        got = None if stem is None else int(stem.shape[1])
+    weights = raw.get("model") if isinstance(raw.get("model"), dict) else {}
+    stem = weights.get("stem.0.weight")
+    expected = INPUT_CHANNELS[mc["input_mode"]]
+    if not isinstance(stem, torch.Tensor) or stem.ndim != 4 or stem.shape[1] != expected:
+        got = int(stem.shape[1]) if isinstance(stem, torch.Tensor) and stem.ndim == 4 else None
         raise FormatError(
             f"{path}: weights for {got} input channels do not match the stored input mode "
-            f"'{mc.get('input_mode')}'"
+            f"'{mc['input_mode']}'"
         )
-    if kind == "self-supervised" and (raw.get("pose_model") is None or not raw.get("pose_config")):
-        raise FormatError(f"{path}: self-supervised checkpoint without its pose network")
+    check_weights(raw["model"], lambda: build_model(mc), path, "depth-network")
+    pc = None
+    if kind == "self-supervised":
+        if raw.get("pose_model") is None or not raw.get("pose_config"):
+            raise FormatError(f"{path}: self-supervised checkpoint without its pose network")
+        pc = check_pose_config(raw["pose_config"], path)
+        check_weights(raw["pose_model"], lambda: build_pose_net(pc), path, "pose-network")
+    if "config" not in raw:
+        raise FormatError(f"{path}: incomplete checkpoint (no training configuration)")
     try:
         config = TrainConfig.from_dict(raw["config"])
+    except ParameterError as exc:
+        raise FormatError(f"{path}: bad training configuration ({exc})") from exc
+    check_agreement(config, mc, pc, kind, path)
+    try:
         state = TrainingState.from_dict(raw)
-    except (KeyError, TypeError, ValueError) as exc:
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise FormatError(f"{path}: incomplete checkpoint ({type(exc).__name__}: {exc})") from exc
+    check_extras(raw, path)
     return Checkpoint(
         path=path,
         kind=kind,
         config=config,
-        model_config=dict(mc),
+        model_config=mc,
         model=raw["model"],
         optimizer=raw.get("optimizer") or {},
         state=state,
-        rng=raw.get("rng") or {},
-        pose_config=raw.get("pose_config"),
+        rng=raw["rng"],
+        pose_config=pc,
         pose_model=raw.get("pose_model"),
         sbm_threshold=raw.get("sbm_threshold"),
     )
@@ -350,6 +423,17 @@ def load_weights(module: torch.nn.Module, weights: dict, path: Path, what: str) 
         first = str(exc).strip().splitlines()
         detail = first[1].strip() if len(first) > 1 else first[0]
         raise FormatError(f"{path}: {what} weights do not fit the model ({detail})") from exc
+
+
+def restore_optimizer(optimizer: torch.optim.Optimizer, ckpt: Checkpoint) -> None:
+    """Load a checkpoint's optimizer state; a mismatch is a one-line :class:`FormatError`."""
+    try:
+        optimizer.load_state_dict(ckpt.optimizer)
+    except (ValueError, KeyError, TypeError, RuntimeError) as exc:
+        detail = " ".join(str(exc).split())[:200]
+        raise FormatError(
+            f"{ckpt.path}: the optimizer state does not fit the model ({detail})"
+        ) from exc
 
 
 def model_from_checkpoint(ckpt: Checkpoint) -> DepthCompletionUNet:

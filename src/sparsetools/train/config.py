@@ -11,11 +11,17 @@ A configuration is saved in ``config.json`` and in every checkpoint (:meth:`Trai
 flat JSON with the self-supervised settings nested under ``selfsup``). ``--resume`` continues a
 run with its saved configuration; only :attr:`TrainConfig.RESUMABLE` fields may change
 (:func:`resumed_config`).
+
+Configurations read back from a file (``config.json``, a checkpoint) are untrusted:
+:meth:`TrainConfig.from_dict` and :meth:`TrainConfig.validate` check the type of every field
+(a string width, a list learning rate, a bool epoch count are refused with the field named) and
+bound the network's size (:data:`MAX_WIDTH`) before anything is built from them.
 """
 
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import asdict, dataclass, fields, replace
 
 from ..errors import ParameterError
@@ -24,6 +30,9 @@ from .model import INPUT_CHANNELS, LIDAR_ENCODERS
 from .runtime import resolve_device
 
 __all__ = [
+    "CAMERA_FREE_MODES",
+    "CONFIDENCE_MODES",
+    "MAX_WIDTH",
     "SPARSE_LOSSES",
     "SelfSupSettings",
     "TrainConfig",
@@ -33,6 +42,112 @@ __all__ = [
 
 #: Sparse-LiDAR losses of self-supervised training ("none" = camera only, scale-ambiguous).
 SPARSE_LOSSES = ("none", "l1", "silog")
+#: Input modes that feed the confidence map of ``dataset build --confidence`` to the network.
+CONFIDENCE_MODES = ("rgbdc",)
+#: Input modes without the camera image (the radar paper's radar-only baseline).
+CAMERA_FREE_MODES = ("d",)
+#: Largest first-level width of the depth and pose networks. The U-Net has about
+#: 10,140 x width^2 parameters (10.4 M at 32, the paper's width; 41.5 M at 64): 256 gives
+#: 665 M (2.7 GB of float32 weights, three times that with Adam's moments). A checkpoint or
+#: configuration asking for more is refused before any layer is allocated.
+MAX_WIDTH = 256
+
+
+def _short(value) -> str:
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def _is_real(value) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
+#: What each kind of field accepts (JSON / checkpoint values are checked against these).
+_KINDS = {
+    "str": (lambda v: isinstance(v, str), "a string"),
+    "int": (_is_int, "an integer"),
+    "int?": (lambda v: v is None or _is_int(v), "an integer or null"),
+    "real": (_is_real, "a number"),
+    "bool": (lambda v: isinstance(v, bool), "true or false"),
+    "int2?": (
+        lambda v: (
+            v is None or (isinstance(v, (list, tuple)) and len(v) == 2 and all(map(_is_int, v)))
+        ),
+        "null or two integers",
+    ),
+    "real2": (
+        lambda v: isinstance(v, (list, tuple)) and len(v) == 2 and all(map(_is_real, v)),
+        "two numbers",
+    ),
+}
+
+
+def _check_types(obj, kinds: dict[str, str]) -> None:
+    """Raise :class:`ParameterError` naming the first field of ``obj`` of the wrong type."""
+    for name, kind in kinds.items():
+        value = getattr(obj, name)
+        accepts, wanted = _KINDS[kind]
+        if not accepts(value):
+            raise ParameterError(f"{name} must be {wanted}, got {_short(value)}", param=name)
+
+
+def _mapping(d, what: str) -> dict:
+    if not isinstance(d, dict):
+        raise ParameterError(f"{what} must be a mapping, got {type(d).__name__}")
+    return d
+
+
+#: The kind of every field of :class:`SelfSupSettings` (see :func:`_check_types`).
+_SELFSUP_KINDS = {
+    "sparse_loss": "str",
+    "sparse_weight": "real",
+    "silog_lambda": "real",
+    "smoothness": "real",
+    "scales": "int",
+    "depth_range": "real2",
+    "auto_mask": "bool",
+    "mcie": "bool",
+    "mcie_clip": "real",
+    "sbm": "bool",
+    "sbm_beta": "real",
+    "sbm_percentile": "real",
+    "pose_width": "int",
+    "pose_lidar_encoder": "str",
+}
+
+#: The kind of every field of :class:`TrainConfig` but ``selfsup``.
+_CONFIG_KINDS = {
+    "dataset": "str",
+    "out_dir": "str",
+    "input_mode": "str",
+    "loss": "str",
+    "epochs": "int",
+    "batch_size": "int",
+    "lr": "real",
+    "optimizer": "str",
+    "lr_schedule": "str",
+    "lr_step": "int",
+    "lr_gamma": "real",
+    "crop": "int2?",
+    "seed": "int",
+    "width": "int",
+    "final_layer": "bool",
+    "workers": "int",
+    "max_steps": "int?",
+    "device": "str",
+    "train_split": "str",
+    "val_split": "str",
+    "max_depth": "real",
+    "pictures": "int",
+    "threads": "int?",
+    "scale_range": "real2",
+    "jitter": "real",
+    "lidar_encoder": "str",
+}
 
 
 @dataclass(frozen=True)
@@ -98,14 +213,28 @@ class SelfSupSettings:
 
     @classmethod
     def from_dict(cls, d: dict) -> SelfSupSettings:
+        """Settings from :meth:`to_dict` output; unknown keys are ignored, missing ones default.
+
+        Raises
+        ------
+        ParameterError
+            ``d`` is not a mapping, or a value has the wrong type (ranges are checked by
+            :meth:`validate`).
+        """
+        d = _mapping(d, "the self-supervised settings (selfsup)")
         names = {f.name for f in fields(cls)}
         kw = {k: v for k, v in d.items() if k in names}
-        if "depth_range" in kw:
-            kw["depth_range"] = tuple(float(v) for v in kw["depth_range"])
-        return cls(**kw)
+        pair = kw.get("depth_range")
+        if isinstance(pair, (list, tuple)) and all(map(_is_real, pair)):
+            kw["depth_range"] = tuple(float(v) for v in pair)
+        settings = cls(**kw)
+        _check_types(settings, _SELFSUP_KINDS)
+        return settings
 
     def validate(self) -> None:
-        """Raise :class:`ParameterError` (naming the setting) for a value out of range."""
+        """Raise :class:`ParameterError` (naming the setting) for a bad type or a value out of
+        range."""
+        _check_types(self, _SELFSUP_KINDS)
         if self.sparse_loss not in SPARSE_LOSSES:
             raise ParameterError(
                 f"unknown sparse loss {self.sparse_loss!r}; choose one of {', '.join(SPARSE_LOSSES)}",
@@ -138,9 +267,9 @@ class SelfSupSettings:
                 f"sbm_percentile must be in [0, 100], got {self.sbm_percentile}",
                 param="sbm_percentile",
             )
-        if int(self.pose_width) < 1:
+        if not 1 <= self.pose_width <= MAX_WIDTH:
             raise ParameterError(
-                f"pose_width must be >= 1, got {self.pose_width}", param="pose_width"
+                f"pose_width must be 1-{MAX_WIDTH}, got {self.pose_width}", param="pose_width"
             )
         if self.pose_lidar_encoder not in LIDAR_ENCODERS:
             raise ParameterError(
@@ -211,18 +340,44 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> TrainConfig:
+        """A configuration from :meth:`to_dict` output (``config.json``, a checkpoint).
+
+        Unknown keys are ignored and missing ones take their defaults (files of older
+        versions), except ``dataset`` and ``out_dir``. Every value's type is checked; ranges
+        and consistency are :meth:`validate`'s.
+
+        Raises
+        ------
+        ParameterError
+            ``d`` is not a mapping, lacks ``dataset`` or ``out_dir``, or a value has the wrong
+            type (naming the field).
+        """
+        d = _mapping(d, "a training configuration")
         names = {f.name for f in fields(cls)}
         kw = {k: v for k, v in d.items() if k in names}
-        if kw.get("crop") is not None:
-            kw["crop"] = tuple(int(v) for v in kw["crop"])
-        if "scale_range" in kw:
+        for required in ("dataset", "out_dir"):
+            if required not in kw:
+                raise ParameterError(f"the training configuration lacks {required!r}")
+        for name in ("crop", "scale_range"):  # JSON lists -> the tuples the dataclass holds
+            if isinstance(kw.get(name), list):
+                kw[name] = tuple(kw[name])
+        if isinstance(kw.get("scale_range"), tuple) and all(map(_is_real, kw["scale_range"])):
             kw["scale_range"] = tuple(float(v) for v in kw["scale_range"])
         if kw.get("selfsup") is not None:
             kw["selfsup"] = SelfSupSettings.from_dict(kw["selfsup"])
-        return cls(**kw)
+        config = cls(**kw)
+        _check_types(config, _CONFIG_KINDS)
+        return config
 
     def validate(self) -> None:
-        """Raise :class:`ParameterError` (naming the setting) for a bad or inconsistent value."""
+        """Raise :class:`ParameterError` (naming the setting) for a value of the wrong type,
+        out of range, or inconsistent with another one."""
+        _check_types(self, _CONFIG_KINDS)
+        if self.selfsup is not None and not isinstance(self.selfsup, SelfSupSettings):
+            raise ParameterError(
+                f"selfsup must be SelfSupSettings or None, got {type(self.selfsup).__name__}",
+                param="selfsup",
+            )
         if self.input_mode not in INPUT_CHANNELS:
             raise ParameterError(
                 f"unknown input mode {self.input_mode!r}; choose one of {sorted(INPUT_CHANNELS)}",
@@ -248,8 +403,20 @@ class TrainConfig:
                 f"unknown optimizer {self.optimizer!r}; choose adam or sgd", param="optimizer"
             )
         for name in ("epochs", "batch_size", "width"):
-            if int(getattr(self, name)) < 1:
+            if getattr(self, name) < 1:
                 raise ParameterError(f"{name} must be >= 1, got {getattr(self, name)}", param=name)
+        if self.width > MAX_WIDTH:
+            raise ParameterError(
+                f"width must be at most {MAX_WIDTH} (about {10_140 * self.width**2:.3g} "
+                f"parameters asked for), got {self.width}",
+                param="width",
+            )
+        if not 0 <= self.seed < 2**63:
+            raise ParameterError(f"seed must be in [0, 2^63), got {self.seed}", param="seed")
+        if self.threads is not None and self.threads < 1:
+            raise ParameterError(f"threads must be >= 1, got {self.threads}", param="threads")
+        if not (0 <= self.jitter < 1):
+            raise ParameterError(f"jitter must be in [0, 1), got {self.jitter}", param="jitter")
         if not (self.lr > 0 and math.isfinite(self.lr)):
             raise ParameterError(f"learning rate must be positive, got {self.lr}", param="lr")
         if self.max_steps is not None and self.max_steps < 1:
@@ -281,6 +448,20 @@ class TrainConfig:
             )
         resolve_device(self.device)
         if self.selfsup is not None:
+            if self.input_mode in CAMERA_FREE_MODES:
+                raise ParameterError(
+                    f"--input {self.input_mode} gives the depth network no camera image, but "
+                    "self-supervised training learns from the image (photometric loss): use "
+                    "--input rgb, rgbd or rgbdm",
+                    param="--input",
+                )
+            if self.input_mode in CONFIDENCE_MODES:
+                raise ParameterError(
+                    f"--input {self.input_mode} is for supervised training: the frame "
+                    "triplets of self-supervised training carry no confidence map; use "
+                    "--input rgbd",
+                    param="--input",
+                )
             self.selfsup.validate()
             if self.final_layer:
                 raise ParameterError(

@@ -4,6 +4,9 @@ Samples come from :class:`sparsetools.io.dataset.DatasetReader`. Training sample
 geometric augmentation of rgb, sparse depth and ground truth (random scale with depth divided
 by the scale as Ma & Karaman do, bottom-centre crop, horizontal flip; nearest-neighbour
 resampling for both depth maps, so no depth value is invented) and a colour jitter of rgb only.
+The input mode ``rgbdc`` adds the confidence map stored by ``dataset build --confidence``
+(``jbf-expand``'s ``<frame>_conf.png``): it goes through the same crop, flip and
+nearest-neighbour resize as the sparse depth it describes, and is not divided by the scale.
 
 Randomness: each sample's augmentation draws from a generator seeded with
 ``(seed, epoch, sample index)``, so a run is reproducible whatever the number of DataLoader
@@ -17,11 +20,13 @@ import torch
 from torch.utils.data import Dataset
 
 from ..errors import FormatError, ParameterError
+from .config import CONFIDENCE_MODES
 
 __all__ = [
     "DepthDataset",
     "augment_sample",
     "bottom_centre_crop",
+    "check_confidence",
     "collate_samples",
     "colour_jitter",
     "open_split",
@@ -61,6 +66,42 @@ def open_split(path, split: str, *, need_gt: bool = True):
                 f"ground truth (e.g. '{missing[0]}'); build the dataset with --gt"
             )
     return reader
+
+
+def check_confidence(reader, *, split: str, input_mode: str) -> None:
+    """Refuse, before any training, a split with samples that lack a confidence map.
+
+    Parameters
+    ----------
+    reader : DatasetReader
+        The split (:func:`open_split`); only its manifest's ``confidence_path`` is read.
+    split : str
+    input_mode : str
+        The input that needs the maps (named in the message).
+
+    Raises
+    ------
+    ParameterError
+        Some or all samples have no ``confidence_path``.
+    """
+    ids = reader.manifest.column("id").to_pylist()
+    paths = reader.manifest.column("confidence_path").to_pylist()
+    missing = [i for i, p in zip(ids, paths, strict=True) if p is None]
+    if missing:
+        where = f"split '{split}' of {reader.root}"
+        if len(missing) == len(ids):
+            found = f"no sample of {where} has one"
+        else:
+            found = (
+                f"{len(missing)} of the {len(ids)} samples of {where} have none "
+                f"(e.g. '{missing[0]}')"
+            )
+        raise ParameterError(
+            f"--input {input_mode} needs a confidence map for every sample, but {found}: "
+            "build the dataset with --confidence (jbf-expand's <frame>_conf.png) or with "
+            "`dataset nuscenes --jbf`",
+            param="--input",
+        )
 
 
 def bottom_centre_crop(array: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -116,7 +157,8 @@ def augment_sample(
     scale_range: tuple[float, float] = (1.0, 1.0),
     flip: bool = True,
     jitter: float = 0.2,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    confidence: np.ndarray | None = None,
+) -> tuple[np.ndarray, ...]:
     """Joint augmentation of one sample.
 
     Parameters
@@ -134,38 +176,44 @@ def augment_sample(
     jitter : float
         Brightness, contrast and saturation factors uniform in [1 - jitter, 1 + jitter] (rgb
         only). 0 disables it.
+    confidence : (H, W) float32, 0..1, optional
+        Confidence of the sparse depth: resized (nearest, like the depth it describes, but
+        not divided by s), cropped and flipped with the other maps.
 
     Returns
     -------
     rgb : (h, w, 3) float32, 0..1
     sparse, gt : (h, w) float32, metres
+    confidence : (h, w) float32
+        Only when ``confidence`` is given (a fourth element).
     """
     import cv2
 
-    # Fixed draw order: the same rng state gives the same augmentation whatever the options.
+    # Fixed draw order: the same rng state gives the same augmentation whatever the options
+    # (with or without a confidence map).
     s = float(rng.uniform(*scale_range))
     do_flip = bool(rng.random() < 0.5)
     factors = rng.uniform(1.0 - jitter, 1.0 + jitter, size=3)
 
     rgb = rgb.astype(np.float32) / 255.0
+    maps = [sparse, gt] if confidence is None else [sparse, gt, confidence]
     if s != 1.0:
         h, w = gt.shape
         nh, nw = round(h * s), round(w * s)
         rgb = cv2.resize(rgb, (nw, nh), interpolation=cv2.INTER_LINEAR)
-        sparse = _resize_nearest(sparse, nh, nw) / np.float32(s)
-        gt = _resize_nearest(gt, nh, nw) / np.float32(s)
+        maps = [_resize_nearest(m, nh, nw) for m in maps]
+        maps[0], maps[1] = maps[0] / np.float32(s), maps[1] / np.float32(s)  # depths only
     if crop is not None:
         rgb = bottom_centre_crop(rgb, *crop)
-        sparse = bottom_centre_crop(sparse, *crop)
-        gt = bottom_centre_crop(gt, *crop)
+        maps = [bottom_centre_crop(m, *crop) for m in maps]
     if flip and do_flip:
-        rgb, sparse, gt = rgb[:, ::-1], sparse[:, ::-1], gt[:, ::-1]
+        rgb = rgb[:, ::-1]
+        maps = [m[:, ::-1] for m in maps]
     if jitter > 0:
         rgb = colour_jitter(rgb, factors)
     return (
         np.ascontiguousarray(rgb, dtype=np.float32),
-        np.ascontiguousarray(sparse, dtype=np.float32),
-        np.ascontiguousarray(gt, dtype=np.float32),
+        *(np.ascontiguousarray(m, dtype=np.float32) for m in maps),
     )
 
 
@@ -187,9 +235,14 @@ class DepthDataset(Dataset):
     need_gt : bool
         Refuse a split without ground truth (:func:`open_split`).
     scale_range, jitter : see :func:`augment_sample`.
+    input_mode : str, optional
+        The network input the samples are for. ``'rgbdc'`` (:data:`CONFIDENCE_MODES`) loads
+        the confidence maps too and refuses, here, a split where a sample has none
+        (:func:`check_confidence`).
 
     Each item is a dict: ``rgb`` (3, h, w) float32 0..1, ``sparse`` and ``gt`` (1, h, w)
-    float32 metres (``gt`` zeros when the sample has none), ``index`` (int).
+    float32 metres (``gt`` zeros when the sample has none), ``index`` (int), and for
+    ``rgbdc`` ``confidence`` (1, h, w) float32 0..1.
     """
 
     def __init__(
@@ -203,8 +256,12 @@ class DepthDataset(Dataset):
         need_gt: bool = True,
         scale_range: tuple[float, float] = (1.0, 1.0),
         jitter: float = 0.2,
+        input_mode: str | None = None,
     ):
         self.reader = open_split(path, split, need_gt=need_gt)
+        self.with_confidence = input_mode in CONFIDENCE_MODES
+        if self.with_confidence:
+            check_confidence(self.reader, split=split, input_mode=input_mode)
         self.augment = bool(augment)
         self.crop = None if crop is None else (int(crop[0]), int(crop[1]))
         self.seed = int(seed)
@@ -249,13 +306,24 @@ class DepthDataset(Dataset):
     def sample_id(self, index: int) -> str:
         return self.reader.row(index)["id"]
 
+    def _confidence_of(self, sample: dict) -> np.ndarray:
+        conf = sample["confidence"]
+        if conf is None:  # the manifest changed after the check in __init__
+            raise FormatError(f"sample '{sample['id']}' has no confidence map")
+        if not np.isfinite(conf).all():
+            raise FormatError(f"sample '{sample['id']}': its confidence map holds NaN or Inf")
+        return conf
+
     def __getitem__(self, index: int) -> dict:
         s = self.reader.sample(int(index))
         rgb, sparse = s["rgb"], s["sparse"]
         gt = s["gt"] if s["gt"] is not None else np.zeros(sparse.shape, np.float32)
+        maps = [sparse, gt]
+        if self.with_confidence:
+            maps.append(self._confidence_of(s))
         if self.augment:
             rng = np.random.default_rng([self.seed, self.epoch, int(index)])
-            rgb, sparse, gt = augment_sample(
+            rgb, *maps = augment_sample(
                 rgb,
                 sparse,
                 gt,
@@ -263,19 +331,22 @@ class DepthDataset(Dataset):
                 crop=self.crop,
                 scale_range=self.scale_range,
                 jitter=self.jitter,
+                confidence=maps[2] if self.with_confidence else None,
             )
         else:
             rgb = rgb.astype(np.float32) / 255.0
             if self.crop is not None:
                 rgb = bottom_centre_crop(rgb, *self.crop)
-                sparse = bottom_centre_crop(sparse, *self.crop)
-                gt = bottom_centre_crop(gt, *self.crop)
-        return {
+                maps = [bottom_centre_crop(m, *self.crop) for m in maps]
+        item = {
             "rgb": torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1))),
-            "sparse": torch.from_numpy(np.ascontiguousarray(sparse)[None]),
-            "gt": torch.from_numpy(np.ascontiguousarray(gt)[None]),
+            "sparse": torch.from_numpy(np.ascontiguousarray(maps[0])[None]),
+            "gt": torch.from_numpy(np.ascontiguousarray(maps[1])[None]),
             "index": int(index),
         }
+        if self.with_confidence:
+            item["confidence"] = torch.from_numpy(np.ascontiguousarray(maps[2], np.float32)[None])
+        return item
 
 
 def collate_samples(items: list[dict]) -> dict:
@@ -287,9 +358,12 @@ def collate_samples(items: list[dict]) -> dict:
             f"images of different sizes in one batch ({listed}, HxW): use --crop HxW "
             "or a dataset with one image size"
         )
-    return {
+    batch = {
         "rgb": torch.stack([it["rgb"] for it in items]),
         "sparse": torch.stack([it["sparse"] for it in items]),
         "gt": torch.stack([it["gt"] for it in items]),
         "index": torch.tensor([it["index"] for it in items], dtype=torch.long),
     }
+    if "confidence" in items[0]:
+        batch["confidence"] = torch.stack([it["confidence"] for it in items])
+    return batch

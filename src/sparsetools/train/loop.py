@@ -38,11 +38,12 @@ from .checkpoint import (
     TrainingState,
     check_run_dir,
     load_checkpoint,
+    restore_optimizer,
     save_checkpoint,
 )
 from .config import TrainConfig, epoch_lr, resumed_config
 from .data import DepthDataset, collate_samples
-from .evaluate import cap_depth, picture_indices, run_evaluation
+from .evaluate import batch_inputs, cap_depth, picture_indices, run_evaluation
 from .losses import depth_loss
 from .model import STRIDE, DepthCompletionUNet
 from .plots import draw_curves, prediction_picture
@@ -197,8 +198,11 @@ def train(
         seed=config.seed,
         scale_range=config.scale_range,
         jitter=config.jitter,
+        input_mode=config.input_mode,
     )
-    val_set = DepthDataset(config.dataset, config.val_split, augment=False)
+    val_set = DepthDataset(
+        config.dataset, config.val_split, augment=False, input_mode=config.input_mode
+    )
     sizes = train_set.output_sizes()
     if len(sizes) > 1:
         listed = ", ".join(f"{h}x{w}" for h, w in sorted(sizes)[:4])
@@ -228,7 +232,7 @@ def train(
         state = TrainingState()
         if ckpt is not None:
             model.load_state_dict(ckpt.model)
-            optimizer.load_state_dict(ckpt.optimizer)
+            restore_optimizer(optimizer, ckpt)
             torch.set_rng_state(ckpt.rng["torch"])
             state = ckpt.state
         else:
@@ -270,10 +274,9 @@ def train(
             ) as bar:
                 bar.update(state.batch_in_epoch)
                 for batch in batches(loader):
-                    rgb = batch["rgb"].to(device)
-                    sparse = batch["sparse"].to(device)
+                    rgb, sparse, extra = batch_inputs(batch, device)
                     gt = cap_depth(batch["gt"].to(device), config.max_depth)
-                    pred = model.run(rgb, sparse)
+                    pred = model.run(rgb, sparse, **extra)
                     loss = depth_loss(config.loss, pred, gt)
                     if not torch.isfinite(loss):
                         raise ParameterError(

@@ -65,6 +65,7 @@ __all__ = [
     "INPUT_CHANNELS",
     "LIDAR_ENCODERS",
     "OUTPUTS",
+    "SPARSE_CHANNEL",
     "DepthCompletionUNet",
     "build_lidar_encoder",
     "build_model",
@@ -74,7 +75,9 @@ __all__ = [
 ]
 
 #: Number of input channels of each input mode.
-INPUT_CHANNELS = {"rgb": 3, "rgbd": 4, "rgbdm": 5}
+INPUT_CHANNELS = {"rgb": 3, "rgbd": 4, "rgbdm": 5, "d": 1, "rgbdc": 5}
+#: Channel of the sparse depth in each mode's input (None: the mode has none).
+SPARSE_CHANNEL = {"rgb": None, "rgbd": 3, "rgbdm": 3, "d": 0, "rgbdc": 3}
 #: Encoder widths at ``width = 32``.
 BASE_WIDTHS = (32, 64, 128, 256, 512)
 #: What the network predicts: metric depth, or multi-scale sigmoid disparity.
@@ -144,30 +147,42 @@ def pad_to_stride(x: torch.Tensor, stride: int = 16) -> torch.Tensor:
     return F.pad(x, (0, pad_w, 0, pad_h)) if pad_h or pad_w else x
 
 
-def model_inputs(rgb: torch.Tensor, sparse: torch.Tensor | None, mode: str) -> torch.Tensor:
+def model_inputs(
+    rgb: torch.Tensor,
+    sparse: torch.Tensor | None,
+    mode: str,
+    confidence: torch.Tensor | None = None,
+) -> torch.Tensor:
     """Stack the network input of ``mode``.
 
     Parameters
     ----------
-    rgb : (B, 3, H, W) float, 0..1
+    rgb : (B, 3, H, W) float, 0..1; unused for ``mode='d'``
     sparse : (B, 1, H, W) float, metres, 0 = no measurement; unused for ``mode='rgb'``
-    mode : {'rgb', 'rgbd', 'rgbdm'}
+    mode : {'rgb', 'rgbd', 'rgbdm', 'd', 'rgbdc'}
+    confidence : (B, 1, H, W) float, 0..1
+        Confidence of the sparse depth (``dataset build --confidence``); ``mode='rgbdc'`` only.
 
     Returns
     -------
-    (B, C, H, W) float with C = ``INPUT_CHANNELS[mode]``: normalised rgb, depth / 20 m,
-    validity mask (0/1).
+    (B, C, H, W) float with C = ``INPUT_CHANNELS[mode]``: normalised rgb, depth / 20 m, then
+    the validity mask (0/1, ``rgbdm``) or the confidence (``rgbdc``); ``d``: depth / 20 m alone.
     """
     if mode not in INPUT_CHANNELS:
         raise ParameterError(f"unknown input mode {mode!r}; choose one of {sorted(INPUT_CHANNELS)}")
-    x = (rgb - _RGB_MEAN) / _RGB_STD
     if mode == "rgb":
-        return x
+        return (rgb - _RGB_MEAN) / _RGB_STD
     if sparse is None:
         raise ParameterError(f"input mode {mode!r} needs sparse depth")
-    parts = [x, sparse / _DEPTH_SCALE]
+    if mode == "d":
+        return sparse / _DEPTH_SCALE
+    parts = [(rgb - _RGB_MEAN) / _RGB_STD, sparse / _DEPTH_SCALE]
     if mode == "rgbdm":
         parts.append((sparse > 0).to(rgb.dtype))
+    if mode == "rgbdc":
+        if confidence is None:
+            raise ParameterError("input mode 'rgbdc' needs the confidence map")
+        parts.append(confidence.to(rgb.dtype))
     return torch.cat(parts, dim=1)
 
 
@@ -235,8 +250,8 @@ class DepthCompletionUNet(nn.Module):
 
     Parameters
     ----------
-    input_mode : {'rgb', 'rgbd', 'rgbdm'}
-        3, 4 or 5 input channels.
+    input_mode : {'rgb', 'rgbd', 'rgbdm', 'd', 'rgbdc'}
+        3, 4, 5, 1 or 5 input channels (:func:`model_inputs`).
     width : int
         Width of the first level; the levels are ``width * (1, 2, 4, 8, 16)`` (32 gives the
         paper's 32-64-128-256-512).
@@ -337,7 +352,7 @@ class DepthCompletionUNet(nn.Module):
         nn.init.zeros_(self.head.weight)
         nn.init.constant_(self.head.bias, _inverse_softplus(_INIT_DEPTH / _DEPTH_SCALE))
         if self.final_layer:
-            extra = 2 if input_mode != "rgb" else 0  # M and M * D
+            extra = 2 if SPARSE_CHANNEL[input_mode] is not None else 0  # M and M * D
             self.adjust = nn.Conv2d(1 + c_in + extra, 1, 3, padding=1)
             # starts as the identity on the coarse depth
             nn.init.zeros_(self.adjust.weight)
@@ -408,8 +423,9 @@ class DepthCompletionUNet(nn.Module):
         if self.final_layer:
             coarse = depth / _DEPTH_SCALE
             parts = [coarse, x]
-            if self.input_mode != "rgb":
-                mask = (x[:, 3:4] > 0).to(x.dtype)  # channel 3 = sparse depth / 20 m
+            k = SPARSE_CHANNEL[self.input_mode]  # the channel of sparse depth / 20 m
+            if k is not None:
+                mask = (x[:, k : k + 1] > 0).to(x.dtype)
                 parts += [mask, mask * coarse]
             depth = depth + self.adjust(torch.cat(parts, dim=1)) * _DEPTH_SCALE
         return depth[:, :, :h, :w]
@@ -424,19 +440,32 @@ class DepthCompletionUNet(nn.Module):
             return disparity_to_depth(out[0], *self.depth_range)
         return out
 
-    def run(self, rgb: torch.Tensor, sparse: torch.Tensor | None) -> torch.Tensor | list:
+    def run(
+        self,
+        rgb: torch.Tensor,
+        sparse: torch.Tensor | None,
+        *,
+        confidence: torch.Tensor | None = None,
+    ) -> torch.Tensor | list:
         """``forward`` on a batch: the input of the model's mode, the sparse map to its branch.
 
         Parameters
         ----------
         rgb : (B, 3, H, W) float, 0..1
         sparse : (B, 1, H, W) float, metres, 0 = empty; may be None for a camera-only model
+        confidence : (B, 1, H, W) float, 0..1; needed by (only) input mode ``'rgbdc'``
         """
-        return self(model_inputs(rgb, sparse, self.input_mode), sparse)
+        return self(model_inputs(rgb, sparse, self.input_mode, confidence), sparse)
 
-    def depth_of(self, rgb: torch.Tensor, sparse: torch.Tensor | None) -> torch.Tensor:
+    def depth_of(
+        self,
+        rgb: torch.Tensor,
+        sparse: torch.Tensor | None,
+        *,
+        confidence: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         """:meth:`predict_depth` on a batch (as :meth:`run`): (B, 1, H, W) metres."""
-        return self.predict_depth(model_inputs(rgb, sparse, self.input_mode), sparse)
+        return self.predict_depth(model_inputs(rgb, sparse, self.input_mode, confidence), sparse)
 
     def config(self) -> dict:
         """The constructor arguments (saved in checkpoints)."""

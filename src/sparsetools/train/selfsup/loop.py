@@ -27,7 +27,14 @@ import torch
 
 from ...errors import ParameterError
 from ...ops.metrics import METRIC_NAMES, aggregate_metrics, depth_metrics
-from ..checkpoint import BestRecord, Checkpoint, TrainingState, load_weights, save_checkpoint
+from ..checkpoint import (
+    BestRecord,
+    Checkpoint,
+    TrainingState,
+    load_weights,
+    restore_optimizer,
+    save_checkpoint,
+)
 from ..config import TrainConfig, epoch_lr
 from ..evaluate import EvaluationPass, cap_depth, picture_indices, rgb_uint8
 from ..loop import TrainSummary, make_optimizer, write_epoch_files
@@ -232,7 +239,7 @@ def train_selfsup(
         if ckpt is not None:
             load_weights(depth_net, ckpt.model, ckpt.path, "depth-network")
             load_weights(pose_net, ckpt.pose_model, ckpt.path, "pose-network")
-            optimizer.load_state_dict(ckpt.optimizer)
+            restore_optimizer(optimizer, ckpt)
             torch.set_rng_state(ckpt.rng["torch"])
             state = ckpt.state
             if sbm is not None:
