@@ -13,7 +13,12 @@ import pytest
 
 import sparsetools as st
 from sparsetools.errors import DependencyError, FormatError, OutputError
-from sparsetools.io.atomic import TMP_PREFIX, atomic_path, remove_stale_temporaries
+from sparsetools.io.atomic import (
+    TMP_PREFIX,
+    atomic_path,
+    atomic_write_bytes,
+    remove_stale_temporaries,
+)
 from sparsetools.io.image import image_header_size
 from sparsetools.io.kitti import read_velodyne_bin, write_velodyne_bin
 from sparsetools.io.nuscenes import (
@@ -406,6 +411,47 @@ def test_atomic_path_refuses_overwrite_and_file_in_the_way(tmp_path):
     with pytest.raises(OutputError, match="a file is in the way"):
         with atomic_path(tmp_path / "file" / "x.png"):
             pass
+
+
+def test_atomic_write_bytes_round_trip_permissions_and_folders(tmp_path):
+    old = os.umask(0o027)
+    try:
+        atomic_write_bytes(tmp_path / "new" / "deep" / "a.png", b"abc" * 100_000)
+        atomic_write_bytes(tmp_path / "new" / "deep" / "a.png", memoryview(b"second"))
+    finally:
+        os.umask(old)
+    target = tmp_path / "new" / "deep" / "a.png"
+    assert target.read_bytes() == b"second"
+    assert target.stat().st_mode & 0o777 == 0o640
+    assert [p.name for p in target.parent.iterdir()] == ["a.png"]  # no temporary left
+
+
+def test_atomic_write_bytes_refuses_empty_data_and_file_in_the_way(tmp_path):
+    with pytest.raises(OutputError, match="no data"):
+        atomic_write_bytes(tmp_path / "a.png", b"")
+    atomic_write_bytes(tmp_path / "empty.bin", b"")  # an empty KITTI cloud is legitimate
+    assert (tmp_path / "empty.bin").read_bytes() == b""
+    (tmp_path / "file").write_bytes(b"")
+    with pytest.raises(OutputError, match="a file is in the way"):
+        atomic_write_bytes(tmp_path / "file" / "x.png", b"x")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty.bin", "file"]
+
+
+def test_atomic_write_bytes_full_disk_leaves_the_old_file(tmp_path, monkeypatch):
+    import errno
+
+    target = tmp_path / "a.png"
+    target.write_bytes(b"old")
+
+    def full(fd, data):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "write", full)
+    with pytest.raises(OutputError, match=r"no space left on device while writing .*a\.png"):
+        atomic_write_bytes(target, b"new")
+    monkeypatch.undo()
+    assert target.read_bytes() == b"old"
+    assert [p.name for p in tmp_path.iterdir()] == ["a.png"]
 
 
 def test_remove_stale_temporaries(tmp_path):

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import FormatError
-from ...io.atomic import atomic_path
+from ...io.atomic import atomic_path, atomic_write_bytes
 from ...io.dataset import (
     MANIFEST_SCHEMA,
     MAX_SIDE,
@@ -84,10 +84,13 @@ def _store(data: bytes, src: str | None, dst: Path, link: bool) -> bool:
     permissions, times): nothing done to the dataset can change the user's file, unlike a
     hard link, and nothing points outside the dataset, unlike a symbolic link.
     """
-    with atomic_path(dst) as tmp:
-        if link and src is not None and _clone(os.path.realpath(src), tmp):
-            return True
-        tmp.write_bytes(data)
+    if link and src is not None:
+        with atomic_path(dst) as tmp:
+            if _clone(os.path.realpath(src), tmp):
+                return True
+            tmp.write_bytes(data)
+        return False
+    atomic_write_bytes(dst, data)
     return False
 
 
@@ -129,8 +132,7 @@ def write_record(path: Path, row: dict, points) -> None:
             np.asarray(v, "<u2").tobytes(),
             np.asarray(d, "<f4").tobytes(),
         ]
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(b"".join(parts))
+    atomic_write_bytes(path, b"".join(parts))
 
 
 def read_record(path: Path) -> tuple[dict, tuple | None]:
