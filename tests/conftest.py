@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import pytest
@@ -26,3 +27,15 @@ def kitti_object(real_dir) -> Path:
 @pytest.fixture(scope="session")
 def nuscenes_demo(real_dir) -> Path:
     return real_dir / "nuscenes-mmdet3d-demo"
+
+
+@pytest.fixture(autouse=True)
+def _restore_root_logger():
+    """CLI invocations configure the root logger (``--quiet`` raises it to ERROR,
+    ``basicConfig(force=True)`` replaces its handlers); undo that after every test so a later
+    test's ``caplog`` sees warnings whatever ran before it."""
+    root = logging.getLogger()
+    level, handlers = root.level, list(root.handlers)
+    yield
+    root.setLevel(level)
+    root.handlers[:] = handlers
