@@ -321,7 +321,11 @@ def selfsup_options(f):
     "--threads",
     type=click.IntRange(min=1),
     default=None,
-    help="torch CPU threads (default: the cores available).",
+    help=(
+        "torch CPU threads (default: the free cores, i.e. those available less the load "
+        "average, at least 1; recorded in config.json: CPU results are identical for the "
+        "same count)."
+    ),
 )
 @selfsup_options
 @json_option(help="Print the summary as JSON.")

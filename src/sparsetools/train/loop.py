@@ -11,7 +11,8 @@ Reproducibility: the model is initialised from ``torch.manual_seed(seed)``; the 
 training samples of epoch ``e`` is a permutation drawn from ``(seed, e)`` and each sample's
 augmentation from ``(seed, e, index)`` (:mod:`sparsetools.train.data`), so neither depends on
 the number of DataLoader workers. ``torch.use_deterministic_algorithms`` is on while training
-and the torch thread count is pinned (``threads``, default: the cores available). On CPU two
+and the torch thread count is pinned (``threads``, default: the free cores, recorded in
+``config.json``; :func:`sparsetools.train.runtime.default_threads`). On CPU two
 runs with the same seed (and thread count) give identical metrics, and a run resumed from
 ``last.pt`` -- saved at the end of every epoch, or where ``max_steps`` stopped it, with the
 model, optimizer, RNG states and the position inside the epoch -- continues exactly as if it
@@ -27,7 +28,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
@@ -48,7 +49,10 @@ from .losses import depth_loss
 from .model import STRIDE, DepthCompletionUNet
 from .plots import draw_curves, prediction_picture
 from .runtime import (
+    background_saves,
     batches,
+    copy_file,
+    default_threads,
     epoch_order,
     make_loader,
     progress_bar,
@@ -82,6 +86,8 @@ class TrainSummary:
     best_value: float
     last: dict | None
     seconds: float
+    #: torch CPU threads the run used (CPU results are bit-identical for the same count)
+    threads: int
 
     def to_dict(self) -> dict:
         """Flat summary for the command line (``best_<metric>`` holds the best value)."""
@@ -94,6 +100,7 @@ class TrainSummary:
             "best_epoch": self.best_epoch,
             f"best_{self.best_metric}": self.best_value,
             "last": self.last,
+            "threads": self.threads,
             "seconds": self.seconds,
         }
 
@@ -122,6 +129,9 @@ def prepare_run(config: TrainConfig, *, resume: bool, explicit: set[str] | None)
         ckpt = load_checkpoint(out / "last.pt")
         config = resumed_config(config, ckpt.config, explicit)
         config.validate()
+    if config.threads is None:  # config.json records the count the results depend on
+        saved = ckpt.config.threads if ckpt is not None else None
+        config = replace(config, threads=saved or default_threads())
     return config, ckpt
 
 
@@ -220,7 +230,7 @@ def train(
         )
 
     started = time.perf_counter()
-    with torch_settings(config.threads, device):
+    with torch_settings(config.threads, device), background_saves():
         torch.manual_seed(config.seed)
         model = DepthCompletionUNet(
             config.input_mode,
@@ -332,9 +342,13 @@ def train(
             if complete:
                 state.start_epoch()
             kw = dict(config=config, model=model, optimizer=optimizer, state=state)
+            # best.pt first, then last.pt: a crash between leaves last.pt older (its epoch
+            # is redone on --resume), never a best.pt older than what last.pt records
             if improved:
                 save_checkpoint(out / "best.pt", **kw)
-            save_checkpoint(out / "last.pt", **kw)
+                copy_file(out / "best.pt", out / "last.pt")
+            else:
+                save_checkpoint(out / "last.pt", **kw)
             write_epoch_files(
                 out,
                 state,
@@ -363,4 +377,5 @@ def train(
         best_value=state.best.value,
         last=state.history[-1] if state.history else None,
         seconds=round(time.perf_counter() - started, 2),
+        threads=config.threads,
     )

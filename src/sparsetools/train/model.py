@@ -347,16 +347,19 @@ class DepthCompletionUNet(nn.Module):
                 for head in self.disparity_heads:
                     nn.init.zeros_(head.weight)
                     nn.init.constant_(head.bias, math.log(sigma / (1 - sigma)))
-            return
-        self.head = nn.Conv2d(widths[0], 1, 1)
-        nn.init.zeros_(self.head.weight)
-        nn.init.constant_(self.head.bias, _inverse_softplus(_INIT_DEPTH / _DEPTH_SCALE))
-        if self.final_layer:
-            extra = 2 if SPARSE_CHANNEL[input_mode] is not None else 0  # M and M * D
-            self.adjust = nn.Conv2d(1 + c_in + extra, 1, 3, padding=1)
-            # starts as the identity on the coarse depth
-            nn.init.zeros_(self.adjust.weight)
-            nn.init.zeros_(self.adjust.bias)
+        else:
+            self.head = nn.Conv2d(widths[0], 1, 1)
+            nn.init.zeros_(self.head.weight)
+            nn.init.constant_(self.head.bias, _inverse_softplus(_INIT_DEPTH / _DEPTH_SCALE))
+            if self.final_layer:
+                extra = 2 if SPARSE_CHANNEL[input_mode] is not None else 0  # M and M * D
+                self.adjust = nn.Conv2d(1 + c_in + extra, 1, 3, padding=1)
+                # starts as the identity on the coarse depth
+                nn.init.zeros_(self.adjust.weight)
+                nn.init.zeros_(self.adjust.bias)
+        # channels-last convolutions: 1.25x faster forward + backward on CPU (oneDNN) at
+        # width 32; another summation order than NCHW, equal to rounding (docs/scale.md)
+        self.to(memory_format=torch.channels_last)
 
     @property
     def in_channels(self) -> int:
@@ -381,7 +384,7 @@ class DepthCompletionUNet(nn.Module):
                 f"got {tuple(x.shape)}"
             )
         h, w = x.shape[-2:]
-        x = pad_to_stride(x, STRIDE)
+        x = pad_to_stride(x, STRIDE).contiguous(memory_format=torch.channels_last)
         lidar_feats = None
         if self.lidar_branch is not None:
             if lidar is None or lidar.ndim != 4 or lidar.shape[1] != 1:

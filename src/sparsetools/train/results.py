@@ -13,12 +13,8 @@ evaluation of checkpoints, which needs torch, and re-exports these names.
 
 from __future__ import annotations
 
-import csv
-import io
-import json
 import math
 import os
-import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -26,8 +22,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..errors import FormatError
-from ..io.atomic import atomic_path
 from ..ops.metrics import METRIC_NAMES, aggregate_metrics, depth_metrics, format_metrics_table
+from .output_files import progress_bar, write_csv, write_json
 
 if TYPE_CHECKING:
     from .selfsup.pose_eval import PoseAccuracy
@@ -78,35 +74,6 @@ class EvalResult:
         if self.checkpoint is None:
             out.pop("epoch", None)
         return out
-
-
-def _progress(total: int, desc: str, enabled: bool):
-    """A tqdm bar on stderr (a no-op when not ``enabled``)."""
-    from tqdm import tqdm
-
-    return tqdm(
-        total=total,
-        desc=desc,
-        unit="image",
-        file=sys.stderr,
-        disable=not enabled,
-        leave=False,
-        dynamic_ncols=True,
-    )
-
-
-def _json_value(o):
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
-
-
-def _csv_value(v):
-    if isinstance(v, float):
-        return repr(v)  # round-trips exactly
-    return "" if v is None else v
 
 
 _DEPTH_SUFFIXES = (".png", ".npy")
@@ -164,7 +131,7 @@ def evaluate_folders(
             f"{pred_dir} (e.g. '{missing[0]}')"
         )
     per_image = []
-    with _progress(len(gts), "eval", progress) as bar:
+    with progress_bar(len(gts), "eval", progress, unit="image") as bar:
         for stem, gt_path in gts.items():
             gt = read_depth_file(gt_path)
             pred = read_depth_file(preds[stem])
@@ -233,8 +200,7 @@ def write_eval_results(result: EvalResult, path: str | os.PathLike) -> list[Path
     The two files are :func:`eval_result_paths` of ``path``. Returns the files written.
     """
     json_path, csv_path = eval_result_paths(path)
-    with atomic_path(json_path) as tmp:
-        tmp.write_text(json.dumps(result.to_dict(), indent=1, default=_json_value) + "\n")
+    write_json(json_path, result.to_dict())
     extra = ["scale"] if result.median_scaling else []
     columns = ["id", *METRIC_NAMES, "n_pixels", *extra]
     mean_row = {
@@ -242,11 +208,5 @@ def write_eval_results(result: EvalResult, path: str | os.PathLike) -> list[Path
         **{k: result.metrics[k] for k in METRIC_NAMES},
         "n_pixels": result.metrics["n_pixels"],
     }
-    buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=columns, extrasaction="ignore", lineterminator="\n")
-    writer.writeheader()
-    for row in [*result.per_image, mean_row]:
-        writer.writerow({k: _csv_value(row.get(k)) for k in columns})
-    with atomic_path(csv_path) as tmp:
-        tmp.write_text(buf.getvalue())
+    write_csv(csv_path, [*result.per_image, mean_row], columns)
     return [json_path, csv_path]

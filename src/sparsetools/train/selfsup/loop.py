@@ -40,7 +40,9 @@ from ..evaluate import EvaluationPass, cap_depth, picture_indices, rgb_uint8
 from ..loop import TrainSummary, make_optimizer, write_epoch_files
 from ..model import STRIDE, DepthCompletionUNet, disparity_to_depth
 from ..runtime import (
+    background_saves,
     batches,
+    copy_file,
     epoch_order,
     make_loader,
     progress_bar,
@@ -215,7 +217,7 @@ def train_selfsup(
     best_name = "rmse" if with_metrics else "photometric"
 
     started = time.perf_counter()
-    with torch_settings(config.threads, device):
+    with torch_settings(config.threads, device), background_saves():
         torch.manual_seed(config.seed)
         depth_net = DepthCompletionUNet(
             config.input_mode,
@@ -363,9 +365,13 @@ def train_selfsup(
                 pose_model=pose_net,
                 sbm_threshold=None if sbm is None else sbm.threshold,
             )
+            # best.pt first, then last.pt: a crash between leaves last.pt older (its epoch
+            # is redone on --resume), never a best.pt older than what last.pt records
             if improved:
                 save_checkpoint(out / "best.pt", **kw)
-            save_checkpoint(out / "last.pt", **kw)
+                copy_file(out / "best.pt", out / "last.pt")
+            else:
+                save_checkpoint(out / "last.pt", **kw)
             write_epoch_files(
                 out,
                 state,
@@ -396,4 +402,5 @@ def train_selfsup(
         best_value=state.best.value,
         last=state.history[-1] if state.history else None,
         seconds=round(time.perf_counter() - started, 2),
+        threads=config.threads,
     )

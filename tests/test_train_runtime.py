@@ -1,0 +1,303 @@
+"""Training runtime: the thread default, torch settings, capped DataLoader workers that die
+with their parent, and checkpoints written on a background thread (issues 13 and 18)."""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from sparsetools.errors import OutputError  # noqa: E402
+from sparsetools.train import runtime  # noqa: E402
+from sparsetools.train.runtime import (  # noqa: E402
+    BackgroundWriter,
+    background_saves,
+    copy_file,
+    default_threads,
+    make_loader,
+    resolve_threads,
+    save_torch,
+    torch_settings,
+    usable_loader_workers,
+)
+from test_train import make_dataset  # noqa: E402
+
+
+# -- the thread default ---------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    ("cores", "load", "cpu_count", "cap", "expected"),
+    [
+        (2, 0.0, 2, 8, 2),  # idle: every core
+        (2, 0.4, 2, 8, 2),  # 1.6 free cores round to 2
+        (2, 0.6, 2, 8, 1),  # 1.4 round to 1
+        (2, 1.0, 2, 8, 1),
+        (2, 5.0, 2, 8, 1),  # overloaded: one thread, never 0
+        (16, 4.0, 16, 64, 12),
+        (16, 0.0, 16, 4, 4),  # OMP_NUM_THREADS / physical cores bound it
+        (4, 32.0, 64, 64, 2),  # a 4-CPU slice of a half-busy 64-CPU machine
+        (1, 0.0, 1, 8, 1),
+        (3, -1.0, 3, 8, 3),  # nonsense load is clamped
+    ],
+)
+def test_default_threads_counts_the_free_cores(cores, load, cpu_count, cap, expected):
+    got = default_threads(cores=cores, load=load, cpu_count=cpu_count, cap=cap)
+    assert got == expected
+    assert 1 <= got <= min(cores, cap)
+
+
+def test_default_threads_reads_this_machine():
+    n = default_threads()
+    assert 1 <= n <= runtime.available_cores()
+    assert resolve_threads(3) == 3 and resolve_threads(None) >= 1
+
+
+def test_torch_settings_sets_and_restores_everything():
+    from torch.utils import deterministic
+
+    before = (
+        torch.are_deterministic_algorithms_enabled(),
+        deterministic.fill_uninitialized_memory,
+        torch.get_num_threads(),
+    )
+    with torch_settings(1, torch.device("cpu")):
+        assert torch.are_deterministic_algorithms_enabled()
+        assert not torch.is_deterministic_algorithms_warn_only_enabled()
+        assert not deterministic.fill_uninitialized_memory
+        assert torch.get_num_threads() == 1
+    with torch_settings(None, torch.device("cpu")):
+        assert torch.get_num_threads() >= 1
+    after = (
+        torch.are_deterministic_algorithms_enabled(),
+        deterministic.fill_uninitialized_memory,
+        torch.get_num_threads(),
+    )
+    assert after == before
+
+
+def test_torch_settings_do_not_import_the_compiler():
+    """torch.use_deterministic_algorithms imports torch._inductor (2-3 s); we do not."""
+    code = textwrap.dedent(
+        """
+        import sys, torch
+        from sparsetools.train.runtime import torch_settings
+        with torch_settings(1, torch.device("cpu")):
+            assert torch.are_deterministic_algorithms_enabled()
+        print("inductor" if "torch._inductor" in sys.modules else "clean")
+        """
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "clean"
+
+
+# -- DataLoader workers -----------------------------------------------------------------------------
+def test_loader_workers_are_capped_with_one_warning(caplog, monkeypatch):
+    monkeypatch.setattr(runtime, "available_cores", lambda: 2)
+    monkeypatch.setattr(runtime, "_CAPS_REPORTED", set())
+    caplog.set_level(logging.WARNING, logger="sparsetools.train.runtime")
+    assert usable_loader_workers(0, 10) == 0
+    assert usable_loader_workers(2, 10) == 2 and not caplog.records
+    assert usable_loader_workers(100000, 10) == 2
+    assert usable_loader_workers(100000, 10) == 2  # every epoch builds a loader: one line
+    assert [r.getMessage() for r in caplog.records] == [
+        "--workers 100000 capped to 2 (2 CPU(s) available)"
+    ]
+    assert usable_loader_workers(5, 1) == 1
+    assert caplog.records[-1].getMessage() == "--workers 5 capped to 1 (1 batch(es) to load)"
+    loader = make_loader(list(range(7)), batch_size=4, order=None, workers=50, seed=0, collate=list)
+    assert loader.num_workers == 2  # 2 batches, 2 CPUs
+    assert [b for b in loader] == [[0, 1, 2, 3], [4, 5, 6]]
+
+
+def _children(pid: int) -> set[int]:
+    kids = set()
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                fields = (d / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[1]) == pid:
+                kids.add(int(d.name))
+    return kids
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"  # a zombie has exited; only its parent's reaping is left
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_killing_a_training_run_leaves_no_loader_worker_alive(tmp_path):
+    """SIGKILL of a `train --workers 2` run: within 5 s none of its workers is alive."""
+    ds = make_dataset(tmp_path / "d")
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "sparsetools.cli.main",
+            "-q",
+            "train",
+            str(ds),
+            "-o",
+            str(tmp_path / "run"),
+            "--width",
+            "4",
+            "--batch-size",
+            "2",
+            "--epochs",
+            "1000",
+            "--workers",
+            "2",
+            "--threads",
+            "1",
+            "--pictures",
+            "0",
+        ],
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        deadline, kids = time.time() + 90, set()
+        while time.time() < deadline and len(kids) < 2 and proc.poll() is None:
+            kids = {k for k in _children(proc.pid) if _alive(k)}
+            time.sleep(0.05)
+        assert len(kids) >= 2, "the loader never started two workers"
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        deadline = time.time() + 5.0
+        while time.time() < deadline and any(_alive(k) for k in kids):
+            time.sleep(0.1)
+        assert not [k for k in kids if _alive(k)], "loader workers outlived their parent"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_a_worker_busy_with_a_long_item_dies_with_its_parent(tmp_path):
+    """torch's own check of the parent runs only between items; a worker inside a slow one
+    (a huge image, a stalled network file system) must still die at once."""
+    code = textwrap.dedent(
+        """
+        import time
+        from sparsetools.train.runtime import make_loader
+
+        class Slow:
+            def __len__(self):
+                return 8
+
+            def __getitem__(self, i):
+                time.sleep(60)
+                return i
+
+        loader = make_loader(Slow(), batch_size=1, order=None, workers=2, seed=0, collate=list)
+        for batch in loader:
+            pass
+        """
+    )
+    proc = subprocess.Popen([sys.executable, "-c", code], stderr=subprocess.DEVNULL)
+    kids: set[int] = set()
+    try:
+        deadline = time.time() + 60
+        while time.time() < deadline and len(kids) < 2 and proc.poll() is None:
+            kids = {k for k in _children(proc.pid) if _alive(k)}
+            time.sleep(0.05)
+        assert len(kids) >= 2, "the loader never started two workers"
+        time.sleep(1.0)  # both inside their first item
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        deadline = time.time() + 5.0
+        while time.time() < deadline and any(_alive(k) for k in kids):
+            time.sleep(0.1)
+        assert not [k for k in kids if _alive(k)], "a busy worker outlived its parent"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        for k in kids:  # only when the test failed: do not leave sleepers behind
+            if _alive(k):
+                os.kill(k, signal.SIGKILL)
+
+
+# -- background checkpoint writing ----------------------------------------------------------------
+def test_background_writer_saves_the_snapshot_taken_at_the_call(tmp_path):
+    weights = torch.arange(6.0)
+    obj = {"model": {"w": weights}, "opt": [{"step": torch.tensor(3)}], "note": "x"}
+    writer = BackgroundWriter()
+    writer.save(obj, tmp_path / "a.pt")
+    weights.add_(100)  # training goes on changing the tensors at once
+    writer.copy(tmp_path / "a.pt", tmp_path / "b.pt")
+    writer.close()
+    for name in ("a.pt", "b.pt"):
+        back = torch.load(tmp_path / name, weights_only=True)
+        assert torch.equal(back["model"]["w"], torch.arange(6.0))
+        assert back["opt"][0]["step"].item() == 3 and back["note"] == "x"
+    assert not list(tmp_path.glob(".tmp-*"))
+
+
+def test_background_saves_route_save_torch_and_keep_the_order(tmp_path):
+    with background_saves() as writer:
+        for i in range(3):
+            save_torch({"i": torch.tensor(i)}, tmp_path / "last.pt")
+        copy_file(tmp_path / "last.pt", tmp_path / "best.pt")
+        assert isinstance(writer, BackgroundWriter)
+    # every file complete on leaving the block; the copy came after the last save
+    assert torch.load(tmp_path / "last.pt", weights_only=True)["i"].item() == 2
+    assert torch.load(tmp_path / "best.pt", weights_only=True)["i"].item() == 2
+    # outside the block, writes are synchronous again
+    save_torch({"i": torch.tensor(7)}, tmp_path / "now.pt")
+    assert torch.load(tmp_path / "now.pt", weights_only=True)["i"].item() == 7
+
+
+def test_a_failed_background_write_is_raised_and_leaves_nothing(tmp_path):
+    (tmp_path / "file").write_text("in the way")
+    target = tmp_path / "file" / "last.pt"  # its folder is a file
+    with pytest.raises(OutputError), background_saves():
+        save_torch({"w": torch.ones(3)}, target)
+        copy_file(target, tmp_path / "best.pt")  # skipped after the failure
+    assert not (tmp_path / "best.pt").exists()
+    writer = BackgroundWriter()
+    writer.save({"w": torch.ones(3)}, target)
+    with pytest.raises(OutputError):
+        writer.save({"w": torch.ones(3)}, tmp_path / "next.pt")  # raised before the next
+    writer.close()
+    assert not (tmp_path / "next.pt").exists() and not list(tmp_path.glob(".tmp-*"))
+
+
+def test_an_error_in_the_block_still_waits_for_the_file(tmp_path):
+    with pytest.raises(KeyError), background_saves():
+        save_torch({"w": torch.zeros(1000, 1000)}, tmp_path / "last.pt")
+        raise KeyError("training failed")
+    assert torch.load(tmp_path / "last.pt", weights_only=True)["w"].shape == (1000, 1000)
+
+
+def test_killed_during_a_background_write_the_old_file_stays_whole(tmp_path):
+    """SIGKILL while the writer thread is busy: last.pt is the old or the new file, whole."""
+    target = tmp_path / "last.pt"
+    torch.save({"version": 1, "w": torch.zeros(4)}, target)
+    code = textwrap.dedent(
+        f"""
+        import os, signal, torch
+        from sparsetools.train.runtime import background_saves, save_torch
+        with background_saves():
+            save_torch({{"version": 2, "w": torch.ones(64, 1024, 1024)}}, {str(target)!r})
+            print("queued", flush=True)
+            os.kill(os.getpid(), signal.SIGKILL)
+        """
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == -signal.SIGKILL and "queued" in r.stdout, r.stderr
+    back = torch.load(target, weights_only=True)
+    assert back["version"] in (1, 2)
+    assert back["w"].shape == ((4,) if back["version"] == 1 else (64, 1024, 1024))

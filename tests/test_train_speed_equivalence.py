@@ -1,0 +1,207 @@
+"""The speed changes of training keep its results: bit for bit where the maths is unchanged,
+to rounding where the summation order changed on purpose (channels-last convolutions), and
+within a stated tolerance across thread counts (issue 18)."""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from sparsetools.train import loop as train_loop  # noqa: E402
+from sparsetools.train.checkpoint import load_checkpoint  # noqa: E402
+from sparsetools.train.config import TrainConfig  # noqa: E402
+from sparsetools.train.data import DepthDataset, collate_samples  # noqa: E402
+from sparsetools.train.model import DepthCompletionUNet  # noqa: E402
+from sparsetools.train.runtime import torch_settings  # noqa: E402
+from test_train import make_dataset, read_rows  # noqa: E402
+
+SEED = 3
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    return make_dataset(tmp_path_factory.mktemp("speed_ds"))
+
+
+def cfg(dataset, out, **kw) -> TrainConfig:
+    base = dict(
+        dataset=str(dataset),
+        out_dir=str(out),
+        width=4,
+        epochs=1,
+        batch_size=4,
+        lr=3e-3,
+        threads=1,
+        pictures=0,
+        seed=SEED,
+    )
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def plain_training(dataset, *, steps: int, batch_size: int = 4, lr: float = 3e-3):
+    """The straightforward loop: public torch settings, one thread, a seeded permutation of
+    the training samples, L1 on the valid ground truth below 80 m, Adam."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    torch.use_deterministic_algorithms(True)  # with NaN-filled fresh memory
+    try:
+        torch.manual_seed(SEED)
+        model = DepthCompletionUNet("rgbd", width=4)
+        opt = torch.optim.Adam(model.parameters(), lr=lr)
+        data = DepthDataset(dataset, "train", augment=True, seed=SEED)
+        data.set_epoch(0)
+        order = np.random.default_rng([SEED, 7919, 0]).permutation(len(data)).tolist()
+        losses, sizes = [], []
+        model.train()
+        for k in range(steps):
+            batch = collate_samples([data[i] for i in order[k * batch_size : (k + 1) * batch_size]])
+            pred = model.run(batch["rgb"], batch["sparse"])
+            gt = batch["gt"]
+            valid = torch.isfinite(gt) & (gt > 0) & (gt < 80.0)
+            loss = (pred[valid] - gt[valid]).abs().mean()
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            losses.append(float(loss.detach()))
+            sizes.append(len(batch["rgb"]))
+        return model.state_dict(), losses, sizes
+    finally:
+        torch.use_deterministic_algorithms(False)
+        torch.set_num_threads(before)
+
+
+def test_training_equals_a_plain_loop_bit_for_bit(dataset, tmp_path):
+    """Deterministic mode without NaN-filled memory, the thread pinning, the background
+    checkpoint writer and the copied last.pt change no bit of the weights or the loss."""
+    run = tmp_path / "run"
+    summary = train_loop.train(cfg(dataset, run, max_steps=3))
+    assert summary.steps == 3
+    weights, losses, sizes = plain_training(dataset, steps=3)
+    saved = load_checkpoint(run / "last.pt").model
+    assert saved.keys() == weights.keys()
+    assert all(torch.equal(saved[k], weights[k]) for k in weights)
+    row = read_rows(run)[0]
+    mean = sum(v * n for v, n in zip(losses, sizes, strict=True)) / sum(sizes)
+    assert float(row["train_loss"]) == mean  # metrics.csv writes floats exactly
+    # best.pt is this epoch too: the same checkpoint contents under both names
+    best = load_checkpoint(run / "best.pt")
+    assert all(torch.equal(best.model[k], saved[k]) for k in saved)
+    assert best.state.step == 3 and not list(run.glob(".tmp-*"))
+
+
+def test_threads_and_resume_record_the_count(dataset, tmp_path, monkeypatch):
+    """Without --threads the run records the count it chose; --resume reuses it (another
+    count would change the last bits), and an explicit --threads wins."""
+    monkeypatch.setattr(train_loop, "default_threads", lambda: 2)
+    run = tmp_path / "run"
+    first = train_loop.train(cfg(dataset, run, threads=None))
+    assert first.threads == 2 and first.to_dict()["threads"] == 2
+    assert json.loads((run / "config.json").read_text())["threads"] == 2
+    monkeypatch.setattr(train_loop, "default_threads", lambda: 1)  # the load changed
+    again = train_loop.train(cfg(dataset, run, threads=None, epochs=2), resume=True)
+    assert again.threads == 2 and again.epochs_done == 2
+    third = train_loop.train(cfg(dataset, run, threads=1, epochs=3), resume=True)
+    assert third.threads == 1
+    # a fresh run without a count takes the default of the moment
+    assert train_loop.train(cfg(dataset, tmp_path / "new", threads=None)).threads == 1
+
+
+def _randomised(width=4, mode="rgbdm", final_layer=True):
+    torch.manual_seed(1)
+    model = DepthCompletionUNet(mode, width=width, final_layer=final_layer)
+    with torch.no_grad():  # the zero-initialised head and adjustment would hide the network
+        model.head.weight.normal_(0, 0.5)
+        model.adjust.weight.normal_(0, 0.1)
+    return model
+
+
+def _forward_backward(model, rgb, sparse, gt):
+    model.train()
+    model.zero_grad()
+    out = model.run(rgb, sparse)
+    (out - gt).abs().mean().backward()
+    return out.detach().double(), [p.grad.double() for p in model.parameters()]
+
+
+def test_channels_last_matches_float64_within_the_documented_tolerance():
+    """The model runs its convolutions channels-last (model.py); in float32 that is another
+    summation order than NCHW: outputs within 1e-4 of the largest output and gradients
+    within 5 % in norm of the same network in float64."""
+    model = _randomised()
+    assert model.stem[0].weight.is_contiguous(memory_format=torch.channels_last)
+    assert model.decoder[0].up.conv1.weight.is_contiguous(memory_format=torch.channels_last)
+    exact = copy.deepcopy(model).double()
+    g = torch.Generator().manual_seed(0)
+    rgb = torch.rand(2, 3, 37, 53, generator=g)  # odd size: padding and crop
+    sparse = torch.where(torch.rand(2, 1, 37, 53, generator=g) < 0.1, 30.0, 0.0)
+    gt = 5 + 40 * torch.rand(2, 1, 37, 53, generator=g)
+    out, grads = _forward_backward(model, rgb, sparse, gt)
+    ref, ref_grads = _forward_backward(exact, rgb.double(), sparse.double(), gt.double())
+    assert out.shape == ref.shape == (2, 1, 37, 53)
+    assert float(ref.std()) > 1.0  # the comparison is not between constants
+    assert not torch.equal(out, ref)  # float32 against float64: a tolerance test
+    assert float((out - ref).abs().max()) <= 1e-4 * float(ref.abs().max())
+    rel = [float((a - r).norm() / r.norm()) for a, r in zip(grads, ref_grads, strict=True)]
+    assert max(rel) <= 0.05
+
+
+def test_checkpoint_weights_load_into_either_layout(dataset, tmp_path):
+    """Weights saved from the channels-last model load into an NCHW one and back, equal
+    (checkpoints of 0.2.0, written NCHW, load the same way)."""
+    train_loop.train(cfg(dataset, tmp_path / "run", max_steps=1))
+    saved = load_checkpoint(tmp_path / "run" / "last.pt").model
+    nchw = DepthCompletionUNet("rgbd", width=4).to(memory_format=torch.contiguous_format)
+    nchw.load_state_dict(saved)
+    back = DepthCompletionUNet("rgbd", width=4)
+    back.load_state_dict({k: v.contiguous() for k, v in nchw.state_dict().items()})
+    assert back.stem[0].weight.is_contiguous(memory_format=torch.channels_last)
+    assert all(torch.equal(back.state_dict()[k], saved[k]) for k in saved)
+
+
+LR = 1e-3
+
+
+def _two_steps(threads: int):
+    g = torch.Generator().manual_seed(5)
+    rgb = torch.rand(4, 3, 48, 80, generator=g)
+    sparse = torch.where(torch.rand(4, 1, 48, 80, generator=g) < 0.1, 25.0, 0.0)
+    gt = 5 + 40 * torch.rand(4, 1, 48, 80, generator=g)
+    with torch_settings(threads, torch.device("cpu")):
+        torch.manual_seed(0)
+        model = DepthCompletionUNet("rgbd", width=8)
+        opt = torch.optim.Adam(model.parameters(), lr=LR)
+        losses, first_grads = [], None
+        for _ in range(2):
+            loss = (model.run(rgb, sparse) - gt).abs().mean()
+            opt.zero_grad()
+            loss.backward()
+            if first_grads is None:
+                first_grads = [p.grad.clone() for p in model.parameters()]
+            opt.step()
+            losses.append(float(loss.detach()))
+    return losses, first_grads, model.state_dict()
+
+
+def test_thread_count_changes_the_results_only_within_the_documented_tolerance():
+    """What runtime.py documents: the first forward pass is the same bits with 1 and 2
+    threads, its weight gradients agree to rounding, and Adam's steps then differ by at most
+    about the learning rate (it divides near-zero gradients by their own tiny RMS)."""
+    l1, g1, w1 = _two_steps(1)
+    l2, g2, w2 = _two_steps(2)
+    assert l1[0] == l2[0]
+    for a, b in zip(g1, g2, strict=True):
+        assert float((a - b).norm()) <= 1e-4 * float(b.norm()) + 1e-12
+    assert math.isclose(l1[1], l2[1], rel_tol=1e-5)
+    for k in w1:
+        if w1[k].is_floating_point():
+            assert float((w1[k] - w2[k]).abs().max()) <= 2 * 2 * LR, k
+    # and a repeat with the same count is exact
+    l1b, _, w1b = _two_steps(1)
+    assert l1b == l1 and all(torch.equal(w1[k], w1b[k]) for k in w1)
