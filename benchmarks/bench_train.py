@@ -19,7 +19,8 @@ Run: ``.venv/bin/python benchmarks/bench_train.py [--repeat 2] [--epochs 2]`` (4
    - end to end: training samples (samples x epochs) per second of the whole process (start,
      imports, data, training, validation, checkpoints, pictures), what a user waits for;
    - train phase: ``samples_per_s`` of the last epoch in metrics.csv (the training steps only);
-   and the ratios ours / reference, with the machine's load.
+   and the ratios ours / reference, with the machine's load. The last scenario repeats the
+   default with one busy process beside the runs (one of the 2 cores taken).
 
 GPU: ``--device cuda`` is not measured here (no GPU on this machine).
 """
@@ -44,8 +45,10 @@ from _timing import load
 ROOT = Path(__file__).resolve().parent.parent
 #: Version 0.2.0, the code issue 18 measured (``git log``: "version 0.2.0: output records...").
 REFERENCE_COMMIT = "716c998"
-#: The three thread settings: None = the command's own default.
-THREADS = (None, 1, 2)
+#: (thread setting, busy processes): None = the command's own default; busy = pure-Python
+#: loops started beside the runs, one core each (issue 18's "busy machine": torch's one thread
+#: per core then waits for the descheduled thread at every operation).
+SCENARIOS = ((None, 0), (1, 0), (2, 0), (None, 1))
 GOAL = 2.0
 
 
@@ -125,12 +128,30 @@ def one_run(ds: Path, run: Path, *, src: Path, threads, epochs: int, width: int)
     }
 
 
+def _alternate(trees: dict, ds: Path, tmp: Path, threads, args) -> list[tuple[str, dict]]:
+    """``args.repeat`` runs of each tree, alternating (ours, reference, ours, ...)."""
+    out = []
+    for _ in range(args.repeat):
+        for name, src in trees.items():
+            run = one_run(
+                ds,
+                tmp / f"run_{name}",
+                src=src,
+                threads=threads,
+                epochs=args.epochs,
+                width=args.width,
+            )
+            out.append((name, run))
+    return out
+
+
 def main(argv=None) -> list[dict] | None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--repeat", type=int, default=2, help="runs of each (median)")
     p.add_argument("--epochs", type=int, default=2)
     p.add_argument("--width", type=int, default=32)
     p.add_argument("--data", type=Path, help="keep the dataset here (reused when present)")
+    p.add_argument("--busy-only", action="store_true", help="only the scenario with a busy core")
     p.add_argument("--ours", type=Path, default=ROOT / "src", help="the package tree to time")
     args, _ = p.parse_known_args(argv)
     print(
@@ -146,20 +167,21 @@ def main(argv=None) -> list[dict] | None:
             return None
         trees = {"ours": args.ours, "ref": ref_src}
         results = []
-        for threads in THREADS:
+        for threads, busy in SCENARIOS:
+            if args.busy_only and not busy:
+                continue
             got: dict[str, list[dict]] = {k: [] for k in trees}
-            for _ in range(args.repeat):
-                for name, src in trees.items():
-                    got[name].append(
-                        one_run(
-                            ds,
-                            tmp / f"run_{name}",
-                            src=src,
-                            threads=threads,
-                            epochs=args.epochs,
-                            width=args.width,
-                        )
-                    )
+            burners = [
+                subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(busy)
+            ]
+            try:
+                pairs = _alternate(trees, ds, tmp, threads, args)
+            finally:
+                for b in burners:
+                    b.kill()
+                    b.wait()
+            for name, r in pairs:
+                got[name].append(r)
             med = {
                 name: {
                     k: statistics.median(r[k] for r in runs)
@@ -168,6 +190,7 @@ def main(argv=None) -> list[dict] | None:
                 for name, runs in got.items()
             }
             label = "default" if threads is None else f"{threads} thread(s)"
+            label += f", {busy} busy" if busy else ""
             chosen = got["ours"][-1]["threads"]
             e2e = med["ours"]["end_to_end"] / med["ref"]["end_to_end"]
             phase = med["ours"]["train_phase"] / med["ref"]["train_phase"]
@@ -180,7 +203,9 @@ def main(argv=None) -> list[dict] | None:
                 f" {phase:4.2f}x train phase | ours used {chosen} thread(s) | {load()}",
                 flush=True,
             )
-            results.append({"threads": threads, "ratio_end_to_end": e2e, "ratio_train": phase})
+            results.append(
+                {"threads": threads, "busy": busy, "ratio_end_to_end": e2e, "ratio_train": phase}
+            )
     return results
 
 

@@ -4,18 +4,19 @@ with their parent, and checkpoints written on a background thread (issues 13 and
 from __future__ import annotations
 
 import logging
+import math
 import os
 import signal
 import subprocess
 import sys
 import textwrap
 import time
-from pathlib import Path
 
 import pytest
 
 torch = pytest.importorskip("torch")
 
+from _processes import alive, children  # noqa: E402
 from sparsetools.errors import OutputError  # noqa: E402
 from sparsetools.train import runtime  # noqa: E402
 from sparsetools.train.runtime import (  # noqa: E402
@@ -34,27 +35,40 @@ from test_train import make_dataset  # noqa: E402
 
 # -- the thread default ---------------------------------------------------------------------------
 @pytest.mark.parametrize(
-    ("cores", "load", "cpu_count", "cap", "expected"),
+    ("free", "cores", "cap", "expected"),
     [
-        (2, 0.0, 2, 8, 2),  # idle: every core
-        (2, 0.4, 2, 8, 2),  # 1.6 free cores round to 2
-        (2, 0.6, 2, 8, 1),  # 1.4 round to 1
-        (2, 1.0, 2, 8, 1),
-        (2, 5.0, 2, 8, 1),  # overloaded: one thread, never 0
-        (16, 4.0, 16, 64, 12),
-        (16, 0.0, 16, 4, 4),  # OMP_NUM_THREADS / physical cores bound it
-        (4, 32.0, 64, 64, 2),  # a 4-CPU slice of a half-busy 64-CPU machine
-        (1, 0.0, 1, 8, 1),
-        (3, -1.0, 3, 8, 3),  # nonsense load is clamped
+        (2.0, 2, 8, 2),  # idle: every core
+        (1.6, 2, 8, 2),  # rounds to the nearest
+        (1.4, 2, 8, 1),
+        (0.0, 2, 8, 1),  # overloaded: one thread, never 0
+        (12.2, 16, 64, 12),
+        (16.0, 16, 4, 4),  # OMP_NUM_THREADS / physical cores bound it
+        (3.0, 2, 8, 2),  # never more than the CPUs it may use
+        (-1.0, 3, 8, 1),  # nonsense is clamped
     ],
 )
-def test_default_threads_counts_the_free_cores(cores, load, cpu_count, cap, expected):
-    got = default_threads(cores=cores, load=load, cpu_count=cpu_count, cap=cap)
+def test_default_threads_counts_the_free_cores(free, cores, cap, expected):
+    got = default_threads(free=free, cores=cores, cap=cap)
     assert got == expected
     assert 1 <= got <= min(cores, cap)
 
 
+def test_free_cores_measures_now_not_the_last_minute(monkeypatch):
+    """/proc/stat deltas: a CPU idle 25 % of the interval counts 0.25; without /proc/stat the
+    1-minute load average is the fallback."""
+    samples = iter([{0: (100, 1000), 1: (500, 1000)}, {0: (125, 1100), 1: (600, 1100)}])
+    monkeypatch.setattr(runtime, "_cpu_times", lambda cpus: next(samples))
+    monkeypatch.setattr(runtime.os, "sched_getaffinity", lambda pid: {0, 1})
+    assert math.isclose(runtime.free_cores(interval=0.0), 0.25 + 1.0)
+    monkeypatch.setattr(runtime, "_cpu_times", lambda cpus: None)
+    monkeypatch.setattr(runtime.os, "getloadavg", lambda: (1.5, 0.0, 0.0))
+    monkeypatch.setattr(runtime.os, "cpu_count", lambda: 4)
+    assert math.isclose(runtime.free_cores(interval=0.0), 2 - 1.5 * 2 / 4)
+
+
 def test_default_threads_reads_this_machine():
+    measured = runtime.free_cores(interval=0.05)
+    assert 0.0 <= measured <= runtime.available_cores()
     n = default_threads()
     assert 1 <= n <= runtime.available_cores()
     assert resolve_threads(3) == 3 and resolve_threads(None) >= 1
@@ -118,27 +132,6 @@ def test_loader_workers_are_capped_with_one_warning(caplog, monkeypatch):
     assert [b for b in loader] == [[0, 1, 2, 3], [4, 5, 6]]
 
 
-def _children(pid: int) -> set[int]:
-    kids = set()
-    for d in Path("/proc").iterdir():
-        if d.name.isdigit():
-            try:
-                fields = (d / "stat").read_text().rsplit(")", 1)[1].split()
-            except OSError:
-                continue
-            if int(fields[1]) == pid:
-                kids.add(int(d.name))
-    return kids
-
-
-def _alive(pid: int) -> bool:
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except OSError:
-        return False
-    return state != "Z"  # a zombie has exited; only its parent's reaping is left
-
-
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 def test_killing_a_training_run_leaves_no_loader_worker_alive(tmp_path):
     """SIGKILL of a `train --workers 2` run: within 5 s none of its workers is alive."""
@@ -171,15 +164,15 @@ def test_killing_a_training_run_leaves_no_loader_worker_alive(tmp_path):
     try:
         deadline, kids = time.time() + 90, set()
         while time.time() < deadline and len(kids) < 2 and proc.poll() is None:
-            kids = {k for k in _children(proc.pid) if _alive(k)}
+            kids = {k for k in children(proc.pid) if alive(k)}
             time.sleep(0.05)
         assert len(kids) >= 2, "the loader never started two workers"
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait()
         deadline = time.time() + 5.0
-        while time.time() < deadline and any(_alive(k) for k in kids):
+        while time.time() < deadline and any(alive(k) for k in kids):
             time.sleep(0.1)
-        assert not [k for k in kids if _alive(k)], "loader workers outlived their parent"
+        assert not [k for k in kids if alive(k)], "loader workers outlived their parent"
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -212,21 +205,21 @@ def test_a_worker_busy_with_a_long_item_dies_with_its_parent(tmp_path):
     try:
         deadline = time.time() + 60
         while time.time() < deadline and len(kids) < 2 and proc.poll() is None:
-            kids = {k for k in _children(proc.pid) if _alive(k)}
+            kids = {k for k in children(proc.pid) if alive(k)}
             time.sleep(0.05)
         assert len(kids) >= 2, "the loader never started two workers"
         time.sleep(1.0)  # both inside their first item
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait()
         deadline = time.time() + 5.0
-        while time.time() < deadline and any(_alive(k) for k in kids):
+        while time.time() < deadline and any(alive(k) for k in kids):
             time.sleep(0.1)
-        assert not [k for k in kids if _alive(k)], "a busy worker outlived its parent"
+        assert not [k for k in kids if alive(k)], "a busy worker outlived its parent"
     finally:
         if proc.poll() is None:
             proc.kill()
         for k in kids:  # only when the test failed: do not leave sleepers behind
-            if _alive(k):
+            if alive(k):
                 os.kill(k, signal.SIGKILL)
 
 

@@ -22,6 +22,8 @@ import pytest
 from cli_helpers import assert_no_traceback, assert_one_error_line, invoke
 from corpus_builder import good_frame, kitti_calib_text, tree_digest, write
 
+from _processes import alive, children
+
 SYNTH = Path(__file__).resolve().parents[2] / "sample_data" / "synthetic"
 
 
@@ -52,27 +54,6 @@ def test_workers_beyond_the_frames_start_no_extra_process(tmp_path, monkeypatch)
     cap = min(3, ex.available_cpus())
     assert sizes == ([cap] if cap > 1 else [])  # one CPU: serial, no pool at all
     assert "--workers 100000 capped to" in r.stderr
-
-
-def _children(pid: int) -> set[int]:
-    out = set()
-    for d in Path("/proc").iterdir():
-        if d.name.isdigit():
-            try:
-                fields = (d / "stat").read_text().rsplit(")", 1)[1].split()
-            except OSError:
-                continue
-            if int(fields[1]) == pid:
-                out.add(int(d.name))
-    return out
-
-
-def _alive(pid: int) -> bool:
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except OSError:
-        return False
-    return state != "Z"
 
 
 @pytest.mark.slow
@@ -108,14 +89,14 @@ def test_killing_the_parent_leaves_no_worker_alive(tmp_path):
         deadline = time.time() + 60
         kids: set[int] = set()
         while time.time() < deadline and len(kids) < 2:
-            kids = _children(proc.pid)
+            kids = children(proc.pid)
             time.sleep(0.1)
         assert kids, "the pool never started"
         time.sleep(1.0)
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait()
         time.sleep(5.0)
-        assert not [k for k in kids if _alive(k)], "workers outlived their parent"
+        assert not [k for k in kids if alive(k)], "workers outlived their parent"
         written = len(list((tmp_path / "out").glob("*.bin")))
         time.sleep(1.0)
         assert len(list((tmp_path / "out").glob("*.bin"))) == written  # nobody writes on

@@ -322,9 +322,9 @@ def selfsup_options(f):
     type=click.IntRange(min=1),
     default=None,
     help=(
-        "torch CPU threads (default: the free cores, i.e. those available less the load "
-        "average, at least 1; recorded in config.json: CPU results are identical for the "
-        "same count)."
+        "torch CPU threads (default: the free cores, i.e. this process's CPUs that are idle "
+        "when the run starts, at least 1; recorded in config.json, kept by --resume: CPU "
+        "results are identical for the same count)."
     ),
 )
 @selfsup_options

@@ -28,7 +28,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -44,72 +44,31 @@ from .checkpoint import (
 )
 from .config import TrainConfig, epoch_lr, resumed_config
 from .data import DepthDataset, collate_samples
+from .epochs import TrainSummary, epoch_loader, make_optimizer, write_epoch_files
 from .evaluate import batch_inputs, cap_depth, picture_indices, run_evaluation
 from .losses import depth_loss
 from .model import STRIDE, DepthCompletionUNet
-from .plots import draw_curves, prediction_picture
 from .runtime import (
     background_saves,
     batches,
     copy_file,
     default_threads,
-    epoch_order,
-    make_loader,
     progress_bar,
     resolve_device,
     torch_settings,
-    write_csv,
     write_json,
-    write_png,
 )
 
-__all__ = ["TrainSummary", "make_optimizer", "prepare_run", "train", "write_epoch_files"]
+__all__ = [
+    "TrainSummary",
+    "epoch_loader",
+    "make_optimizer",
+    "prepare_run",
+    "train",
+    "write_epoch_files",
+]
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class TrainSummary:
-    """What :func:`train` reports.
-
-    ``best_metric`` names the validation metric ``best.pt`` was chosen by (lower is better)
-    and ``best_value`` its value at ``best_epoch``; ``last`` is the last epoch's metrics row.
-    """
-
-    run_dir: str
-    input_mode: str
-    self_supervised: bool
-    epochs_done: int
-    steps: int
-    best_epoch: int | None
-    best_metric: str
-    best_value: float
-    last: dict | None
-    seconds: float
-    #: torch CPU threads the run used (CPU results are bit-identical for the same count)
-    threads: int
-
-    def to_dict(self) -> dict:
-        """Flat summary for the command line (``best_<metric>`` holds the best value)."""
-        return {
-            "run_dir": self.run_dir,
-            "input_mode": self.input_mode,
-            "mode": "self-supervised" if self.self_supervised else "supervised",
-            "epochs_done": self.epochs_done,
-            "steps": self.steps,
-            "best_epoch": self.best_epoch,
-            f"best_{self.best_metric}": self.best_value,
-            "last": self.last,
-            "threads": self.threads,
-            "seconds": self.seconds,
-        }
-
-
-def make_optimizer(params, config: TrainConfig) -> torch.optim.Optimizer:
-    """Adam, or SGD with momentum 0.9 and weight decay 1e-4, at ``config.lr``."""
-    if config.optimizer == "adam":
-        return torch.optim.Adam(params, lr=config.lr)
-    return torch.optim.SGD(params, lr=config.lr, momentum=0.9, weight_decay=1e-4)
 
 
 def prepare_run(config: TrainConfig, *, resume: bool, explicit: set[str] | None):
@@ -133,26 +92,6 @@ def prepare_run(config: TrainConfig, *, resume: bool, explicit: set[str] | None)
         saved = ckpt.config.threads if ckpt is not None else None
         config = replace(config, threads=saved or default_threads())
     return config, ckpt
-
-
-def write_epoch_files(
-    out: Path,
-    state: TrainingState,
-    *,
-    loss_name: str,
-    metric: str,
-    pictures: list,
-    max_depth: float,
-) -> None:
-    """``metrics.csv``, ``curves.png`` and ``predictions/epoch_NNN.png`` after an epoch."""
-    row = state.history[-1]
-    write_csv(out / "metrics.csv", state.history, list(row))
-    write_png(out / "curves.png", draw_curves(state.history, loss_name=loss_name, metric=metric))
-    if pictures:
-        write_png(
-            out / "predictions" / f"epoch_{row['epoch']:03d}.png",
-            prediction_picture(pictures, max_depth=max_depth),
-        )
 
 
 def train(
@@ -258,23 +197,7 @@ def train(
             config.max_steps is None or state.step < config.max_steps
         ):
             epoch = state.epoch
-            train_set.set_epoch(epoch)
-            todo = epoch_order(config.seed, epoch, n_train)[
-                state.batch_in_epoch * config.batch_size :
-            ]
-            if config.max_steps is not None:
-                todo = todo[: (config.max_steps - state.step) * config.batch_size]
-            # a trailing batch of one sample at the 1x1 bottleneck would break batch norm
-            if tiny and len(todo) % config.batch_size == 1:
-                todo = todo[:-1]
-            loader = make_loader(
-                train_set,
-                batch_size=config.batch_size,
-                order=todo,
-                workers=config.workers,
-                seed=config.seed + epoch,
-                collate=collate_samples,
-            )
+            loader = epoch_loader(train_set, config, state, tiny=tiny, collate=collate_samples)
             for group in optimizer.param_groups:
                 group["lr"] = epoch_lr(config, epoch)
             model.train()

@@ -36,14 +36,13 @@ from ..checkpoint import (
     save_checkpoint,
 )
 from ..config import TrainConfig, epoch_lr
+from ..epochs import TrainSummary, epoch_loader, make_optimizer, write_epoch_files
 from ..evaluate import EvaluationPass, cap_depth, picture_indices, rgb_uint8
-from ..loop import TrainSummary, make_optimizer, write_epoch_files
 from ..model import STRIDE, DepthCompletionUNet, disparity_to_depth
 from ..runtime import (
     background_saves,
     batches,
     copy_file,
-    epoch_order,
     make_loader,
     progress_bar,
     resolve_device,
@@ -258,22 +257,7 @@ def train_selfsup(
             config.max_steps is None or state.step < config.max_steps
         ):
             epoch = state.epoch
-            train_set.set_epoch(epoch)
-            todo = epoch_order(config.seed, epoch, n_train)[
-                state.batch_in_epoch * config.batch_size :
-            ]
-            if config.max_steps is not None:
-                todo = todo[: (config.max_steps - state.step) * config.batch_size]
-            if tiny and len(todo) % config.batch_size == 1:
-                todo = todo[:-1]
-            loader = make_loader(
-                train_set,
-                batch_size=config.batch_size,
-                order=todo,
-                workers=config.workers,
-                seed=config.seed + epoch,
-                collate=collate_triplets,
-            )
+            loader = epoch_loader(train_set, config, state, tiny=tiny, collate=collate_triplets)
             for group in optimizer.param_groups:
                 group["lr"] = epoch_lr(config, epoch)
             depth_net.train()
