@@ -83,7 +83,9 @@ def test_train_then_eval(dataset, tmp_path):
 def test_resume_continues(dataset, tmp_path):
     out = tmp_path / "run"
     assert run("train", dataset, "-o", out, *TINY).exit_code == 0
-    r = run("train", dataset, "-o", out, *TINY)
+    r = run("train", dataset, "-o", out, *TINY)  # the same command again: up to date
+    assert r.exit_code == 0 and "up to date (nothing trained)" in r.stderr, r.output
+    r = run("train", dataset, "-o", out, *TINY, "--seed", "5")
     assert "already holds a run" in one_line_error(r)
     r = run("train", dataset, "-o", out, "--resume", "--epochs", "2", "--threads", "1", "--json")
     assert r.exit_code == 0, r.output

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -338,10 +339,25 @@ def test_existing_run_and_resume_errors(dataset, tmp_path):
     run = tmp_path / "run"
     with pytest.raises(ParameterError, match="nothing to resume"):
         train(config(dataset, run), resume=True)
-    train(config(dataset, run, epochs=1))
+    first = train(config(dataset, run, epochs=1))
     before = (run / "last.pt").read_bytes()
-    with pytest.raises(OutputError, match="already holds a run"):
-        train(config(dataset, run, epochs=1))
+    rows = read_rows(run)
+    # the resume rule: the same settings on a finished run are a no-op
+    again = train(config(dataset, run, epochs=1))
+    assert again.steps == first.steps and again.best_value == first.best_value
+    assert (run / "last.pt").read_bytes() == before and read_rows(run) == rows
+    # another setting, more epochs without --resume, or a dataset changed since: refused
+    for changed in (dict(epochs=1, seed=7), dict(epochs=2), dict(epochs=1, width=8)):
+        with pytest.raises(OutputError, match="already holds a run"):
+            train(config(dataset, run, **changed))
+    manifest = dataset / "manifest.parquet"
+    stat = manifest.stat()
+    try:
+        os.utime(manifest, (stat.st_atime, (run / "last.pt").stat().st_mtime + 10))
+        with pytest.raises(OutputError, match="already holds a run"):
+            train(config(dataset, run, epochs=1))
+    finally:
+        os.utime(manifest, ns=(stat.st_atime_ns, stat.st_mtime_ns))
     with pytest.raises(ParameterError, match="input mode 'rgbd', not 'rgb'"):
         train(
             config(dataset, run, epochs=2, input_mode="rgb"), resume=True, explicit={"input_mode"}

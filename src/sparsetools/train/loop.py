@@ -33,7 +33,7 @@ from pathlib import Path
 
 import torch
 
-from ..errors import ParameterError
+from ..errors import ParameterError, SparsetoolsError
 from ..ops.metrics import METRIC_NAMES, aggregate_metrics
 from .checkpoint import (
     TrainingState,
@@ -71,6 +71,26 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 
+def _finished_with_these_settings(config: TrainConfig, out: Path) -> bool:
+    """True when ``out`` holds a run that finished ``config.epochs`` epochs with every other
+    setting equal to ``config``'s, and the dataset's manifest is older than its ``last.pt``."""
+    last = out / "last.pt"
+    manifest = Path(config.dataset) / "manifest.parquet"
+    try:
+        if not last.is_file() or manifest.stat().st_mtime > last.stat().st_mtime:
+            return False
+        ckpt = load_checkpoint(last)
+        resumed_config(config, ckpt.config, None)  # raises on any other setting
+    except (SparsetoolsError, OSError):
+        return False  # the usual checks then say what is wrong
+    saved = ckpt.config
+    return (
+        saved.epochs == config.epochs
+        and saved.max_steps == config.max_steps
+        and ckpt.state.epoch >= config.epochs
+    )
+
+
 def prepare_run(config: TrainConfig, *, resume: bool, explicit: set[str] | None):
     """Check the settings and the run folder; on ``resume`` load ``last.pt``.
 
@@ -82,6 +102,11 @@ def prepare_run(config: TrainConfig, *, resume: bool, explicit: set[str] | None)
     """
     config.validate()
     out = Path(config.out_dir)
+    if not resume and _finished_with_these_settings(config, out):
+        # the resume rule of every batch command: a rerun of a finished run with the same
+        # settings on an unchanged dataset is a no-op (make demo twice)
+        log.warning("%s: finished run with these settings, up to date (nothing trained)", out)
+        resume = True
     check_run_dir(out, Path(config.dataset), resume)
     ckpt = None
     if resume:
