@@ -11,9 +11,10 @@ Every step is a `sparsetools` command, as a user would run it:
     sparsetools dataset build -o DS --rgb STAGE/rgb --sparse SPARSE<N> --gt STAGE/gt \
         --calib STAGE/calib --split train=...,val=...,test=...
 
-Existing outputs are reused (each command resumes; datasets with a manifest are kept). Until
-`dataset build` reads the videos' poses.txt, :func:`attach_true_poses` fills the manifest's
-``T_world_cam`` from it (pose evaluation needs it).
+Existing outputs are reused (each command resumes; datasets with a manifest are kept). The datasets
+are built from flat staging folders (night images live apart from their videos), which carry
+no poses, so :func:`attach_true_poses` fills the manifest's ``T_world_cam`` from the videos'
+poses.txt (pose evaluation needs it; `dataset build --rgb VIDEOS` reads them itself).
 """
 
 from __future__ import annotations
