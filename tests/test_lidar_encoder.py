@@ -10,7 +10,6 @@ bit for bit).
 
 from __future__ import annotations
 
-import csv
 import json
 from pathlib import Path
 
@@ -38,9 +37,8 @@ from sparsetools.train.selfsup.pose_net import (  # noqa: E402
 )
 from sparsetools.train.sfe import DenseLidarEncoder, SparseFeatureExtractor  # noqa: E402
 from test_selfsup_scene import video, write_video_dataset  # noqa: E402
-from test_train import make_dataset  # noqa: E402
+from test_train import make_dataset, read_rows, state_equal  # noqa: E402
 
-TIMING = {"seconds", "samples_per_s"}
 H, W = 37, 53  # not multiples of 16: the padding path
 
 
@@ -379,15 +377,6 @@ def selfsup_config(dataset, out, **kw) -> TrainConfig:
     return TrainConfig(**base)
 
 
-def read_rows(run: Path) -> list[dict]:
-    with open(run / "metrics.csv") as f:
-        return [{k: v for k, v in r.items() if k not in TIMING} for r in csv.DictReader(f)]
-
-
-def same_weights(a: dict, b: dict) -> bool:
-    return a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
-
-
 def test_selfsup_sfe_is_deterministic_and_resumes_exactly(videos, tmp_path):
     train(selfsup_config(videos, tmp_path / "a"))
     train(selfsup_config(videos, tmp_path / "b"))
@@ -397,14 +386,14 @@ def test_selfsup_sfe_is_deterministic_and_resumes_exactly(videos, tmp_path):
     assert a.lidar_encoder == "sfe" and a.pose_config["lidar_encoder"] == "sfe"
     assert any(k.startswith("lidar_branch.") for k in a.model)
     assert any(k.startswith("lidar_branch.") for k in a.pose_model)
-    assert same_weights(a.model, b.model) and same_weights(a.pose_model, b.pose_model)
+    assert state_equal(a.model, b.model) and state_equal(a.pose_model, b.pose_model)
     # 12 training triplets / batch 4 = 3 steps per epoch: stop mid-epoch 2, resume
     cut = train(selfsup_config(videos, tmp_path / "cut", max_steps=4))
     assert cut.steps == 4
     train(selfsup_config(videos, tmp_path / "cut"), resume=True)
     assert read_rows(tmp_path / "cut") == rows
     c = load_checkpoint(tmp_path / "cut" / "last.pt")
-    assert same_weights(c.model, a.model) and same_weights(c.pose_model, a.pose_model)
+    assert state_equal(c.model, a.model) and state_equal(c.pose_model, a.pose_model)
     ma, mb = c.optimizer["state"], a.optimizer["state"]
     assert all(torch.equal(ma[k]["exp_avg_sq"], mb[k]["exp_avg_sq"]) for k in ma)
     # --resume keeps the encoders
@@ -480,7 +469,7 @@ def test_supervised_sfe_trains_resumes_and_best_reproduces_validation(supervised
     rows = read_rows(tmp_path / "full")
     assert read_rows(tmp_path / "cut") == rows
     full = load_checkpoint(tmp_path / "full" / "last.pt")
-    assert same_weights(full.model, load_checkpoint(tmp_path / "cut" / "last.pt").model)
+    assert state_equal(full.model, load_checkpoint(tmp_path / "cut" / "last.pt").model)
     assert full.config.lidar_encoder == "sfe" and full.model_config["lidar_encoder"] == "sfe"
     best = min(rows, key=lambda r: float(r["rmse"]))
     res = evaluate_checkpoint(tmp_path / "full" / "best.pt", supervised_ds, split="val")

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import csv
 import json
 from pathlib import Path
 
@@ -21,8 +20,7 @@ from sparsetools.train.config import SelfSupSettings, TrainConfig  # noqa: E402
 from sparsetools.train.evaluate import evaluate_checkpoint  # noqa: E402
 from sparsetools.train.loop import train  # noqa: E402
 from test_selfsup_scene import video, write_video_dataset  # noqa: E402
-
-TIMING = {"seconds", "samples_per_s"}
+from test_train import read_rows, state_equal  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -54,15 +52,6 @@ def config(dataset, out, **kw) -> TrainConfig:
     return TrainConfig(**base)
 
 
-def read_rows(run: Path) -> list[dict]:
-    with open(run / "metrics.csv") as f:
-        return [{k: v for k, v in r.items() if k not in TIMING} for r in csv.DictReader(f)]
-
-
-def same_weights(a: dict, b: dict) -> bool:
-    return a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
-
-
 # -- determinism and resume -------------------------------------------------------------------------
 def test_same_seed_same_metrics_and_weights(dataset, tmp_path):
     night = {"mcie": True, "sbm": True}
@@ -73,7 +62,7 @@ def test_same_seed_same_metrics_and_weights(dataset, tmp_path):
     assert s1.self_supervised and s1.best_metric == "rmse" and s1.best_value == s2.best_value
     a, b = load_checkpoint(tmp_path / "a" / "last.pt"), load_checkpoint(tmp_path / "b" / "last.pt")
     assert a.kind == "self-supervised"
-    assert same_weights(a.model, b.model) and same_weights(a.pose_model, b.pose_model)
+    assert state_equal(a.model, b.model) and state_equal(a.pose_model, b.pose_model)
     assert a.sbm_threshold is not None and a.sbm_threshold == b.sbm_threshold
     # camera only: median-scaled validation metrics, logged in the rows
     assert rows[0]["median_scaling"] == "1" and float(rows[0]["abs_rel"]) > 0
@@ -95,9 +84,7 @@ def test_resume_is_exact_at_epoch_end_and_mid_epoch(dataset, tmp_path):
     for name in ("half", "cut"):
         assert read_rows(tmp_path / name) == full_rows, name
         ckpt = load_checkpoint(tmp_path / name / "last.pt")
-        assert same_weights(ckpt.model, full.model) and same_weights(
-            ckpt.pose_model, full.pose_model
-        )
+        assert state_equal(ckpt.model, full.model) and state_equal(ckpt.pose_model, full.pose_model)
         assert ckpt.sbm_threshold == full.sbm_threshold and ckpt.state.step == 6
         ma, mb = ckpt.optimizer["state"], full.optimizer["state"]
         assert all(torch.equal(ma[k]["exp_avg_sq"], mb[k]["exp_avg_sq"]) for k in ma)

@@ -8,12 +8,18 @@ from pathlib import Path
 
 import torch
 
-from .checkpoint import TrainingState
+from .checkpoint import TrainingState, save_checkpoint
 from .config import TrainConfig
 from .plots import draw_curves, prediction_picture
-from .runtime import epoch_order, make_loader, write_csv, write_png
+from .runtime import copy_file, epoch_order, make_loader, write_csv, write_png
 
-__all__ = ["TrainSummary", "epoch_loader", "make_optimizer", "write_epoch_files"]
+__all__ = [
+    "TrainSummary",
+    "epoch_loader",
+    "make_optimizer",
+    "save_epoch_checkpoints",
+    "write_epoch_files",
+]
 
 
 @dataclass(frozen=True)
@@ -105,3 +111,17 @@ def write_epoch_files(
             out / "predictions" / f"epoch_{row['epoch']:03d}.png",
             prediction_picture(pictures, max_depth=max_depth),
         )
+
+
+def save_epoch_checkpoints(out: Path, *, improved: bool, **kw) -> None:
+    """``last.pt`` after an epoch, and ``best.pt`` when the epoch ``improved``.
+
+    ``best.pt`` is written first and ``last.pt`` is then its copy: a crash between leaves
+    ``last.pt`` older (its epoch is redone on ``--resume``), never a ``best.pt`` older than
+    what ``last.pt`` records. ``kw`` goes to :func:`~sparsetools.train.checkpoint.save_checkpoint`.
+    """
+    if improved:
+        save_checkpoint(out / "best.pt", **kw)
+        copy_file(out / "best.pt", out / "last.pt")
+    else:
+        save_checkpoint(out / "last.pt", **kw)

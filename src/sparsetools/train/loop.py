@@ -40,18 +40,22 @@ from .checkpoint import (
     check_run_dir,
     load_checkpoint,
     restore_optimizer,
-    save_checkpoint,
 )
 from .config import TrainConfig, epoch_lr, resumed_config
 from .data import DepthDataset, collate_samples
-from .epochs import TrainSummary, epoch_loader, make_optimizer, write_epoch_files
+from .epochs import (
+    TrainSummary,
+    epoch_loader,
+    make_optimizer,
+    save_epoch_checkpoints,
+    write_epoch_files,
+)
 from .evaluate import batch_inputs, cap_depth, picture_indices, run_evaluation
 from .losses import depth_loss
 from .model import STRIDE, DepthCompletionUNet
 from .runtime import (
     background_saves,
     batches,
-    copy_file,
     default_threads,
     progress_bar,
     resolve_device,
@@ -290,13 +294,7 @@ def train(
             if complete:
                 state.start_epoch()
             kw = dict(config=config, model=model, optimizer=optimizer, state=state)
-            # best.pt first, then last.pt: a crash between leaves last.pt older (its epoch
-            # is redone on --resume), never a best.pt older than what last.pt records
-            if improved:
-                save_checkpoint(out / "best.pt", **kw)
-                copy_file(out / "best.pt", out / "last.pt")
-            else:
-                save_checkpoint(out / "last.pt", **kw)
+            save_epoch_checkpoints(out, improved=improved, **kw)
             write_epoch_files(
                 out,
                 state,

@@ -33,16 +33,20 @@ from ..checkpoint import (
     TrainingState,
     load_weights,
     restore_optimizer,
-    save_checkpoint,
 )
 from ..config import TrainConfig, epoch_lr
-from ..epochs import TrainSummary, epoch_loader, make_optimizer, write_epoch_files
+from ..epochs import (
+    TrainSummary,
+    epoch_loader,
+    make_optimizer,
+    save_epoch_checkpoints,
+    write_epoch_files,
+)
 from ..evaluate import EvaluationPass, cap_depth, picture_indices, rgb_uint8
 from ..model import STRIDE, DepthCompletionUNet, disparity_to_depth
 from ..runtime import (
     background_saves,
     batches,
-    copy_file,
     make_loader,
     progress_bar,
     resolve_device,
@@ -349,13 +353,7 @@ def train_selfsup(
                 pose_model=pose_net,
                 sbm_threshold=None if sbm is None else sbm.threshold,
             )
-            # best.pt first, then last.pt: a crash between leaves last.pt older (its epoch
-            # is redone on --resume), never a best.pt older than what last.pt records
-            if improved:
-                save_checkpoint(out / "best.pt", **kw)
-                copy_file(out / "best.pt", out / "last.pt")
-            else:
-                save_checkpoint(out / "last.pt", **kw)
+            save_epoch_checkpoints(out, improved=improved, **kw)
             write_epoch_files(
                 out,
                 state,
