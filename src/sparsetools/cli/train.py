@@ -340,7 +340,8 @@ def train(ctx, dataset, out_dir, resume, as_json, self_supervised, **options):
 
     After every epoch: validation metrics in RUN_DIR/metrics.csv, checkpoints last.pt and
     best.pt (lowest validation RMSE), curves.png and prediction pictures. The same seed
-    gives the same metrics on CPU; --resume continues exactly.
+    (and --threads) gives the same metrics on CPU; --resume continues exactly. The same
+    command again on a finished run is a no-op; other settings need another RUN_DIR.
 
     \b
     Examples:
