@@ -321,7 +321,7 @@ def _(tmp):
     return Setup(_project(tmp, "--image-size", f"{W}x{H}", "--crop", "10,10,500,500"))
 
 
-@case("project/crop-malformed", expect="usage", match="TOP,LEFT,H,W")
+@case("project/crop-malformed", expect="usage", match="WxH+LEFT+TOP")
 def _(tmp):
     return Setup(_project(tmp, "--image-size", f"{W}x{H}", "--crop", "1,2"))
 

@@ -140,6 +140,7 @@ def accumulate(
     min_radius_px,
     max_radius_px,
     batch,
+    as_json,
 ):
     """Merge the LiDAR scans of frames t-K..t+K into frame t's view (KITTI-style ground truth).
 
@@ -210,4 +211,4 @@ def accumulate(
         batch=batch,
         inputs=[*clouds, calib, image, poses, mask],
     )
-    emit_summary(summary, as_json=batch.as_json, title=f"accumulated depth maps in {out_dir}")
+    emit_summary(summary, as_json=as_json, title=f"accumulated depth maps in {out_dir}")

@@ -176,6 +176,7 @@ def beams(
     report,
     out_dir,
     batch,
+    as_json,
 ):
     """Keep 1-32 beams of 64-beam LiDAR scans (all columns of the kept points).
 
@@ -212,7 +213,7 @@ def beams(
             profile=profile,
             far_range=far_range,
         )
-        _print_report(ring_report(list(clouds), settings), batch.as_json)
+        _print_report(ring_report(list(clouds), settings), as_json)
         return
     if out_dir is None:
         raise click.UsageError("Missing option '-o' / '--out' (or use --report).")
@@ -239,7 +240,7 @@ def beams(
     summary = run_beams(
         frames, out_dir, settings, image_size=image_size, batch=batch, inputs=inputs
     )
-    emit_summary(summary, as_json=batch.as_json, title=f"beams written to {out_dir}")
+    emit_summary(summary, as_json=as_json, title=f"beams written to {out_dir}")
 
 
 def _print_report(reports: list[dict], as_json: bool) -> None:

@@ -68,6 +68,7 @@ def _odd_window(ctx, param, value):
 def dark_channel(
     images, out_dir, window, mask_threshold, mask_mode, intensity, lddcv_format, save_pictures,
     batch,
+    as_json,
 ):  # fmt: skip
     """Dark channel DC, LDDCV map and its mask M = 1[|LDDCV| > T] of every image.
 
@@ -94,4 +95,4 @@ def dark_channel(
         pictures=save_pictures,
     )
     summary = run_dark_channel(images, out_dir, settings=settings, batch=batch)
-    emit_summary(summary, as_json=batch.as_json, title=f"dark-channel maps written to {out_dir}")
+    emit_summary(summary, as_json=as_json, title=f"dark-channel maps written to {out_dir}")

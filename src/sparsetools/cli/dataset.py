@@ -196,6 +196,7 @@ def build(
     source,
     params,
     batch,
+    as_json,
 ):
     """Build a dataset, or add frames to one, from per-frame files matched by frame.
 
@@ -235,9 +236,9 @@ def build(
         params=params,
         batch=batch,
     ).as_dict()
-    if not batch.as_json:
+    if not as_json:
         summary = _flat(summary)
-    emit_summary(summary, as_json=batch.as_json, title=f"dataset written to {out_dir}")
+    emit_summary(summary, as_json=as_json, title=f"dataset written to {out_dir}")
 
 
 def _flat(summary: dict) -> dict:
@@ -259,9 +260,9 @@ def _fmt(v) -> str:
     return str(v)
 
 
-def _summary(summary, batch, out_dir) -> None:
+def _summary(summary, as_json, out_dir) -> None:
     d = summary.as_dict()
-    emit_summary(d if batch.as_json else _flat(d), as_json=batch.as_json,
+    emit_summary(d if as_json else _flat(d), as_json=as_json,
                  title=f"dataset written to {out_dir}")  # fmt: skip
 
 
@@ -297,7 +298,7 @@ _SPLIT_HELP = "Split fractions over sequences [default: 0.8,0.1,0.1]; or name=fr
 @seed_option(help="Seed of the split assignment.")
 @batch_options
 def nuscenes(root, out_dir, nuscenes_version, camera, sensor, sweeps, resize, crop, gt_sensor,
-             gt_sweeps, jbf, scenes, night, split, seed, batch):  # fmt: skip
+             gt_sweeps, jbf, scenes, night, split, seed, batch, as_json):  # fmt: skip
     """nuScenes samples to a dataset: camera image, radar (or LiDAR) input, LiDAR truth.
 
     Per sample: the camera image, resized and cropped with its intrinsics adjusted, the
@@ -319,7 +320,7 @@ def nuscenes(root, out_dir, nuscenes_version, camera, sensor, sweeps, resize, cr
         scenes=tuple(s.strip() for s in scenes.split(",")) if scenes else None,
         night=night, split=split, seed=seed, batch=batch,
     )  # fmt: skip
-    _summary(summary, batch, out_dir)
+    _summary(summary, as_json, out_dir)
 
 
 @dataset.command("kitti-raw")
@@ -336,7 +337,7 @@ def nuscenes(root, out_dir, nuscenes_version, camera, sensor, sweeps, resize, cr
 )  # fmt: skip
 @seed_option(help="Seed of the split assignment.")
 @batch_options
-def kitti_raw(root, out_dir, beams, split, split_files, seed, batch):
+def kitti_raw(root, out_dir, beams, split, split_files, seed, batch, as_json):
     """KITTI raw drives to a dataset: image, N-beam projected LiDAR, full-scan ground truth.
 
     ROOT is a drive, a date folder (all its drives) or a root of dates. Frames are keyed by
@@ -356,7 +357,7 @@ def kitti_raw(root, out_dir, beams, split, split_files, seed, batch):
         root, out_dir, beams=None if beams == 64 else beams, split=split,
         split_files=split_files or None, seed=seed, batch=batch,
     )  # fmt: skip
-    _summary(summary, batch, out_dir)
+    _summary(summary, as_json, out_dir)
 
 
 @dataset.command("kitti-dc")
@@ -380,7 +381,7 @@ def kitti_raw(root, out_dir, beams, split, split_files, seed, batch):
     "images and intrinsics).",
 )  # fmt: skip
 @batch_options
-def kitti_dc(root, out_dir, raw, sparse_name, gt_name, selection, batch):
+def kitti_dc(root, out_dir, raw, sparse_name, gt_name, selection, batch, as_json):
     """A KITTI depth-completion root to a dataset, split as the tree splits it (train / val).
 
     ROOT holds data_depth_velodyne/ and data_depth_annotated/ ({train,val}/<drive>/proj_depth/
@@ -402,7 +403,7 @@ def kitti_dc(root, out_dir, raw, sparse_name, gt_name, selection, batch):
         root, out_dir, raw=raw, sparse_name=sparse_name, gt_name=gt_name, selection=selection,
         batch=batch,
     )  # fmt: skip
-    _summary(summary, batch, out_dir)
+    _summary(summary, as_json, out_dir)
 
 
 @dataset.command("export")
@@ -426,7 +427,7 @@ def kitti_dc(root, out_dir, raw, sparse_name, gt_name, selection, batch):
 )  # fmt: skip
 @click.option("--split", "default_split", default=None, help="Split of drives --split-from lacks.")
 @batch_options
-def export(maps, out_dir, layout, name, split_from, default_split, batch):
+def export(maps, out_dir, layout, name, split_from, default_split, batch, as_json):
     """Write depth maps of KITTI drives in the official depth-completion layout.
 
     MAPS holds maps per drive (<drive>/<frame>.png: a project, beams+project, jbf-expand or
@@ -445,7 +446,7 @@ def export(maps, out_dir, layout, name, split_from, default_split, batch):
         maps, out_dir, ExportSettings(layout=layout, name=name, splits=splits),
         split=default_split, batch=batch,
     )  # fmt: skip
-    emit_summary(summary, as_json=batch.as_json, title=f"maps exported to {out_dir}")
+    emit_summary(summary, as_json=as_json, title=f"maps exported to {out_dir}")
 
 
 @dataset.command("info")

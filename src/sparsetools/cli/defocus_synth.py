@@ -16,10 +16,10 @@ from .options import (
     noise_camera_option,
     noise_option,
     output_dir_option,
+    pair,
     positive,
     ratio_option,
     seed_option,
-    value_or_range,
 )
 
 
@@ -50,7 +50,7 @@ from .options import (
 )
 @click.option(
     "--f-number",
-    callback=value_or_range(),
+    callback=pair(single=True, low=0, strict=True),
     metavar="F|LOW,HIGH",
     help="f-number F_n (A = f / F_n), or a range sampled log-uniformly per image "
     "[default: the preset's].",
@@ -63,7 +63,7 @@ from .options import (
 )
 @click.option(
     "--focus-distance",
-    callback=value_or_range(),
+    callback=pair(single=True, low=0, strict=True),
     default="0.7",
     show_default=True,
     metavar="D|LOW,HIGH",
@@ -142,6 +142,7 @@ def defocus_synth(
     radius_format,
     seed,
     batch,
+    as_json,
 ):
     """Blur images as a thin lens focused at D_fp would, from their dense depth.
 
@@ -186,4 +187,4 @@ def defocus_synth(
         radius_format=radius_format,
     )
     summary = run_defocus(images, out_dir, depth=depth, calib=calib, settings=settings, batch=batch)
-    emit_summary(summary, as_json=batch.as_json, title=f"defocused images written to {out_dir}")
+    emit_summary(summary, as_json=as_json, title=f"defocused images written to {out_dir}")

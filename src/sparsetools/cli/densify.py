@@ -63,7 +63,7 @@ from .options import batch_options, emit_summary, max_depth_option, output_dir_o
 )
 @batch_options
 def densify(sparse, out_dir, method, variant, extrapolate, multiscale, max_depth, outside, fmt,
-            batch):  # fmt: skip
+            batch, as_json):  # fmt: skip
     """Complete sparse depth maps: IP-Basic (as published) or the nearest / linear baselines.
 
     SPARSE: depth maps (KITTI uint16 PNG or .npy metres), folders of them, the output of
@@ -93,4 +93,4 @@ def densify(sparse, out_dir, method, variant, extrapolate, multiscale, max_depth
         outside=outside,
     )
     summary = run_densify(list(sparse), out_dir, settings=settings, fmt=fmt, batch=batch)
-    emit_summary(summary, as_json=batch.as_json, title=f"dense depth maps in {out_dir}")
+    emit_summary(summary, as_json=as_json, title=f"dense depth maps in {out_dir}")

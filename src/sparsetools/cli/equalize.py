@@ -53,6 +53,7 @@ def equalize(
     reference,
     rounding,
     batch,
+    as_json,
 ):
     """Equalise images with ONE clipped-histogram table per channel (RNW's MCIE).
 
@@ -73,4 +74,4 @@ def equalize(
     summary = run_equalize(
         images, out_dir, clip=clip, reference=reference, rounding=rounding, batch=batch
     )
-    emit_summary(summary, as_json=batch.as_json, title=f"equalised frames written to {out_dir}")
+    emit_summary(summary, as_json=as_json, title=f"equalised frames written to {out_dir}")

@@ -150,6 +150,7 @@ def jbf_expand(
     lidar,
     max_depth,
     batch,
+    as_json,
 ):
     """Expand sparse radar depth with a range-aware joint bilateral filter.
 
@@ -201,8 +202,8 @@ def jbf_expand(
     result = summary.as_dict()
     table = result.pop("intrinsic_error", None)
     if table is not None:
-        if batch.as_json:
+        if as_json:
             result["intrinsic_error"] = table
         elif table["frames"]:
             click.echo(format_intrinsic_table(table, max_depth=max_depth))
-    emit_summary(result, as_json=batch.as_json, title=f"expanded radar written to {out_dir}")
+    emit_summary(result, as_json=as_json, title=f"expanded radar written to {out_dir}")

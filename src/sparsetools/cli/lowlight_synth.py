@@ -20,11 +20,10 @@ from .options import (
     noise_cameras,
     noise_option,
     output_dir_option,
+    pair,
     positive,
-    positive_pair,
     ratio_option,
     seed_option,
-    value_or_range,
 )
 
 #: ELD noise tables shipped with the package, and "random" (one per image).
@@ -56,7 +55,7 @@ CAMERAS = noise_cameras()
 @color_bias_option
 @click.option(
     "--brightness",
-    callback=positive_pair,
+    callback=pair(low=0, strict=True),
     default="0.4,1.0",
     show_default=True,
     metavar="MIN,MAX",
@@ -64,7 +63,7 @@ CAMERAS = noise_cameras()
 )
 @click.option(
     "--gamma",
-    callback=positive_pair,
+    callback=pair(low=0, strict=True),
     default="1.8,2.2",
     show_default=True,
     metavar="MIN,MAX",
@@ -72,7 +71,7 @@ CAMERAS = noise_cameras()
 )
 @click.option(
     "--flare-count",
-    callback=value_or_range(int, minimum=1, strict=False),
+    callback=pair(integer=True, single=True, low=1),
     default="1,20",
     show_default=True,
     metavar="N|MIN,MAX",
@@ -80,7 +79,7 @@ CAMERAS = noise_cameras()
 )
 @click.option(
     "--flare-scale",
-    callback=positive_pair,
+    callback=pair(low=0, strict=True),
     default="0.2,1.0",
     show_default=True,
     metavar="MIN,MAX",
@@ -88,7 +87,7 @@ CAMERAS = noise_cameras()
 )
 @click.option(
     "--flare-amount",
-    callback=positive_pair,
+    callback=pair(low=0, strict=True),
     default="0.3,3.0",
     show_default=True,
     metavar="MIN,MAX",
@@ -131,6 +130,7 @@ def lowlight_synth(
     ratio,
     bank_seed,
     batch,
+    as_json,
 ):
     """Turn day images into night images (DepthDark's low-light data generation).
 
@@ -174,4 +174,4 @@ def lowlight_synth(
         params=params,
         batch=batch,
     )
-    emit_summary(summary, as_json=batch.as_json, title=f"night images written to {out_dir}")
+    emit_summary(summary, as_json=as_json, title=f"night images written to {out_dir}")

@@ -21,7 +21,6 @@ __all__ = [
     "calib_option",
     "checked",
     "emit_summary",
-    "float_pair",
     "image_option",
     "image_size_option",
     "int_list",
@@ -30,6 +29,7 @@ __all__ = [
     "min_depth_option",
     "output_dir_option",
     "overwrite_option",
+    "pair",
     "positive",
     "quiet_debug_options",
     "resize_option",
@@ -38,7 +38,7 @@ __all__ = [
 ]
 
 
-# -- callbacks -----------------------------------------------------------------------------------
+# -- callbacks: they parse text (the rules themselves are sparsetools.validate's) ------------------
 
 
 def checked(fn):
@@ -70,79 +70,119 @@ def non_negative(ctx, param, value):
 
 
 def size_wxh(ctx, param, value):
-    """Parse ``WxH`` (e.g. 1242x375) into (W, H)."""
+    """Callback: ``WxH`` (e.g. 1242x375) -> (W, H) pixels."""
     from ..validate import parse_size
 
     return checked(lambda v: parse_size(v, param.name if param else "size"))(ctx, param, value)
 
 
+def size_metres(ctx, param, value):
+    """Callback: ``WxH`` in metres (e.g. 2.35x2.35) -> (W, H) floats."""
+    from ..validate import parse_size
+
+    return checked(lambda v: parse_size(v, param.name, integer=False))(ctx, param, value)
+
+
 def crop_box(ctx, param, value):
-    """Parse ``TOP,LEFT,H,W`` into a tuple of four ints."""
-    from ..validate import parse_crop
+    """Callback: ``WxH+LEFT+TOP`` -> ``(top, left, height, width)``; the pre-0.3 text
+    ``TOP,LEFT,H,W`` is still read, with a deprecation warning."""
+    from ..validate import format_crop, is_legacy_crop, parse_crop
 
-    return checked(lambda v: parse_crop(v, param.name))(ctx, param, value)
-
-
-def float_pair(sep: str = ","):
-    """Callback parsing ``a<sep>b`` into a (low, high) float pair with low <= high."""
-
-    def parse(ctx, param, value):
-        if value is None:
-            return None
-        try:
-            a, b = (float(v) for v in value.split(sep))
-        except ValueError:
-            raise click.BadParameter(f"expected two numbers as A{sep}B, got {value!r}") from None
-        if a > b:
-            raise click.BadParameter(f"range is inverted ({a} > {b})")
-        return a, b
-
-    return parse
+    box = checked(lambda v: parse_crop(v, param.name))(ctx, param, value)
+    if box is not None and is_legacy_crop(value):
+        warn_deprecated(
+            f"--crop {value} (TOP,LEFT,H,W) is the old syntax: write --crop {format_crop(box)} "
+            "(WxH+LEFT+TOP)"
+        )
+    return box
 
 
-def value_or_range(cast=float, *, minimum: float = 0.0, strict: bool = True):
-    """Callback parsing ``V`` (fixed) or ``LOW,HIGH`` (sampled) into ``(low, high)`` with
-    ``minimum < LOW <= HIGH`` (``<=`` minimum when not ``strict``), all finite."""
-    import math
-
-    kind = "integers" if cast is int else "numbers"
+def pair(*, integer: bool = False, single: bool = False, low: float | None = None,
+         strict: bool = False):  # fmt: skip
+    """Callback factory: ``A,B`` (and ``V`` for ``(V, V)`` when ``single``) -> an ordered pair
+    of finite numbers, ``A`` above ``low`` (``>`` when ``strict``)."""
+    from ..validate import parse_pair
 
     def parse(ctx, param, value):
-        if value is None:
-            return None
-        try:
-            parts = [cast(v) for v in value.split(",")]
-        except ValueError:
-            raise click.BadParameter(f"expected V or LOW,HIGH as {kind}, got {value!r}") from None
-        if len(parts) == 1:
-            parts = parts * 2
-        if len(parts) != 2:
-            raise click.BadParameter(f"expected V or LOW,HIGH, got {value!r}")
-        lo, hi = parts
-        if not (math.isfinite(lo) and math.isfinite(hi)):
-            raise click.BadParameter(f"values must be finite, got {value!r}")
-        if (lo <= minimum) if strict else (lo < minimum):
-            bound = f"> {minimum:g}" if strict else f">= {minimum:g}"
-            raise click.BadParameter(f"values must be {bound}, got {value!r}")
-        if lo > hi:
-            raise click.BadParameter(f"range is inverted ({lo} > {hi})")
-        return lo, hi
+        def one(v):
+            return parse_pair(v, param.name, integer=integer, single=single, low=low, strict=strict)
+
+        return checked(one)(ctx, param, value)
 
     return parse
 
 
 def int_list(ctx, param, value):
-    """Parse ``5,7,9,11`` (or several values) into a tuple of ints."""
+    """Callback: ``5,7,9,11`` (or several values) -> a tuple of ints (None when not given)."""
+    from ..validate import parse_int_list
+
     if value is None or value == ():
         return None
-    items = value if isinstance(value, (tuple, list)) else (value,)
-    out = []
-    try:
-        for item in items:
-            out.extend(int(v) for v in str(item).replace(",", " ").split())
-    except ValueError:
-        raise click.BadParameter(f"expected integers, got {value!r}") from None
-    return tuple(out)
+    return checked(lambda v: parse_int_list(v, param.name))(ctx, param, value)
+
+
+# -- deprecated spellings (kept one release) ----------------------------------------------------------
+
+#: Old spelling -> the option that replaces it, per command (filled by :func:`deprecated`);
+#: the architecture test checks that every hidden option is one of these and that it warns.
+DEPRECATED: dict[tuple[str, str], str] = {}
+_DEPRECATED_KEY = "sparsetools.deprecated"
+
+
+def warn_deprecated(text: str) -> None:
+    """One deprecation warning line on stderr (once per message and run)."""
+    ctx = click.get_current_context(silent=True)
+    seen = ctx.find_root().meta.setdefault("sparsetools.warned", set()) if ctx else set()
+    if text in seen:
+        return
+    seen.add(text)
+    logging.getLogger("sparsetools.cli").warning("deprecated: %s", text)
+
+
+def deprecated(old: str, new: str, *, command: str, dest: str, value=None, is_flag=False):
+    """A hidden alias ``old`` of option ``new`` (stored in parameter ``dest``): it still works
+    for one release and prints a one-line warning naming ``new``.
+
+    The old text goes through ``new``'s own type and callback, so it is read exactly as the
+    new option reads it. ``value`` (for a flag) is the new option's value the old flag means
+    (``--no-confidence`` -> ``--conf-format none``). Giving both spellings is a usage error.
+    """
+    DEPRECATED[(command, old)] = new
+
+    def remember(ctx, param, given):
+        if given is None or (is_flag and not given):
+            return
+        ctx.meta.setdefault(_DEPRECATED_KEY, {})[old] = given
+
+    def deco(f):
+        @functools.wraps(f)
+        def command_fn(*args, **kw):
+            ctx = click.get_current_context()
+            store = ctx.meta.get(_DEPRECATED_KEY, {})
+            if old in store:
+                from click.core import ParameterSource
+
+                if ctx.get_parameter_source(dest) not in (None, ParameterSource.DEFAULT):
+                    raise click.UsageError(f"{old} is the old spelling of {new}: give {new} only")
+                warn_deprecated(f"{old} is now {new} (the old spelling goes in 0.4)")
+                if value is not None:
+                    kw[dest] = value
+                else:
+                    target = next(p for p in ctx.command.params if p.name == dest)
+                    kw[dest] = target.process_value(ctx, store[old])
+            return f(*args, **kw)
+
+        return click.option(
+            old,
+            is_flag=is_flag,
+            default=None,
+            hidden=True,
+            expose_value=False,
+            callback=remember,
+            help=f"Deprecated: use {new}.",
+        )(command_fn)
+
+    return deco
 
 
 # -- shared declarations -------------------------------------------------------------------------
@@ -374,7 +414,8 @@ def batch_options(f):
     """The batch options every batch command has, passed to the command as ``batch``.
 
     ``--workers``, ``--overwrite``, ``--on-error``, ``--executor``, ``--dask-scheduler``,
-    ``--json``, ``--debug``, ``-q``: one :class:`sparsetools.pipeline.Batch`.
+    ``--debug``, ``-q``: one :class:`sparsetools.pipeline.Batch`, passed as ``batch``; and
+    ``--json`` (how the command prints its summary), passed as ``as_json``.
     """
 
     @functools.wraps(f)
@@ -389,9 +430,8 @@ def batch_options(f):
             on_error=on_error,
             progress=False if root_flag("quiet") else None,
             debug=root_flag("debug"),
-            as_json=as_json,
         )
-        return f(*args, batch=batch, **kw)
+        return f(*args, batch=batch, as_json=as_json, **kw)
 
     decorators = [
         click.option(
@@ -430,25 +470,6 @@ def batch_options(f):
         quiet_debug_options,
     ]
     return functools.reduce(lambda acc, d: d(acc), reversed(decorators), command)
-
-
-def positive_pair(ctx, param, value):
-    """``A,B`` with 0 < A <= B, both finite."""
-    import math
-
-    if value is None:
-        return None
-    try:
-        a, b = (float(v) for v in value.split(","))
-    except ValueError:
-        raise click.BadParameter(f"expected two numbers as A,B, got {value!r}") from None
-    if not (math.isfinite(a) and math.isfinite(b)):
-        raise click.BadParameter(f"expected finite numbers, got {value!r}")
-    if a > b:
-        raise click.BadParameter(f"range is inverted ({a} > {b})")
-    if a <= 0:
-        raise click.BadParameter(f"values must be > 0, got {value!r}")
-    return a, b
 
 
 # -- sensor noise and depth inputs (lowlight-synth, defocus-synth) ---------------------------------
@@ -506,7 +527,7 @@ def ratio_option(f=None, *, default: str = "2,32"):
     def deco(fn):
         return click.option(
             "--ratio",
-            callback=positive_pair,
+            callback=pair(low=0, strict=True),
             default=default,
             show_default=True,
             metavar="MIN,MAX",

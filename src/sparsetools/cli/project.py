@@ -99,6 +99,7 @@ def project(
     sensor,
     sweeps,
     batch,
+    as_json,
 ):
     """Project point clouds to sparse depth maps (nearest point wins, order-free).
 
@@ -182,4 +183,4 @@ def project(
             )
     tasks = project_tasks(frames, out_dir, settings)
     summary = run_project(tasks, out_dir, settings, batch=batch, inputs=inputs)
-    emit_summary(summary, as_json=batch.as_json, title=f"sparse depth maps in {out_dir}")
+    emit_summary(summary, as_json=as_json, title=f"sparse depth maps in {out_dir}")

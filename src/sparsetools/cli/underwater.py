@@ -72,6 +72,7 @@ def underwater(
     eps,
     a_ref,
     batch,
+    as_json,
 ):
     """Compensate deep-sea lighting by pixel-wise medians (no light or water model).
 
@@ -100,4 +101,4 @@ def underwater(
         white_balance=white_balance,
         batch=batch,
     )
-    emit_summary(summary, as_json=batch.as_json, title=f"compensated frames written to {out_dir}")
+    emit_summary(summary, as_json=as_json, title=f"compensated frames written to {out_dir}")

@@ -2,7 +2,7 @@
 types for every command.
 
 ``Batch`` holds the options every batch command shares (``--workers``, ``--executor``,
-``--dask-scheduler``, ``--overwrite``, ``--on-error``, progress, ``--debug``, ``--json``);
+``--dask-scheduler``, ``--overwrite``, ``--on-error``, progress, ``--debug``);
 the command line builds one from :func:`sparsetools.cli.options.batch_options` and every
 ``run_*`` function takes it. ``RunSummary`` is what every ``run_*`` returns: per-frame
 results in task order plus the command's own totals.
@@ -43,8 +43,6 @@ class Batch:
         Progress bar on stderr; None: only when stderr is a terminal.
     debug : bool
         Keep the traceback of a failed frame (shown by the command line).
-    as_json : bool
-        The command line prints the summary as JSON.
     """
 
     workers: int = 1
@@ -54,7 +52,6 @@ class Batch:
     on_error: str = "stop"
     progress: bool | None = None
     debug: bool = False
-    as_json: bool = False
 
     def __post_init__(self) -> None:
         check_int_range(self.workers, "workers", low=1)

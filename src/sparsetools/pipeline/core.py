@@ -1,9 +1,21 @@
 """The frame runner: one per-frame job over many frames, with make-like resume.
 
-Every batch command builds a list of :class:`FrameTask` (one per frame: its key, a typed
-record of its inputs, the outputs it writes by role, the input files whose identity decides
-resume) and hands it to :func:`run_frames` with a picklable job (a callable taking a task and
-returning per-frame statistics; it writes its outputs itself, atomically). The runner
+Every batch command is a :class:`BatchJob` run by :func:`run_job`, so a command body reads
+*parse -> discover -> run_job -> report*:
+
+- a job is a frozen record of its settings, validated once (in ``__post_init__``), plus what
+  the batch fixes before any frame runs (:meth:`BatchJob.planned`: the rings ``beams``
+  keeps, the table ``equalize`` applies);
+- :meth:`BatchJob.tasks` turns frames (from :mod:`sparsetools.io.sources`) into
+  :class:`FrameTask` records: the frame's key, a typed record of its inputs, the outputs it
+  writes by role, the input files whose identity decides resume;
+- ``job(task)`` processes one frame, writes its outputs itself (atomically) and returns a
+  frozen :class:`FrameStats` record;
+- :meth:`BatchJob.finish` merges what the frames wrote (a Parquet table, a manifest) and
+  returns the command's totals.
+
+:func:`run_job` checks the output folder, builds the tasks and hands them to
+:func:`run_frames`, which
 
 - refuses two tasks with one frame id or one output path, and outputs that would replace
   inputs;
@@ -18,6 +30,7 @@ returning per-frame statistics; it writes its outputs itself, atomically). The r
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 import os
@@ -26,14 +39,22 @@ import traceback
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Generic, TypeVar
+from typing import Any, ClassVar, Generic, TypeVar
 
 from ..errors import FrameError, OutputError, ParameterError, SparsetoolsError
 from ..io.atomic import remove_stale_temporaries
 from .batch import Batch, FrameResult, RunSummary
-from .provenance import OutputFolder
+from .provenance import OutputFolder, option_names, settings_dict
 
-__all__ = ["FrameTask", "RunSpec", "check_output_dir", "run_frames"]
+__all__ = [
+    "BatchJob",
+    "FrameStats",
+    "FrameTask",
+    "RunSpec",
+    "check_output_dir",
+    "run_frames",
+    "run_job",
+]
 
 log = logging.getLogger(__name__)
 
@@ -99,6 +120,107 @@ class RunSpec:
     shared_outputs: tuple[Path, ...] = ()
 
 
+@dataclass(frozen=True)
+class FrameStats:
+    """What one frame's job measured: a frozen record, one subclass per command.
+
+    Its fields are what the folder's record keeps for the frame (``frames.jsonl``); a field
+    holding None is left out of the record. Names starting with ``t_`` are timings of one
+    run and are never recorded.
+    """
+
+    def to_record(self) -> dict:
+        """The statistics as the folder's record stores them (JSON values, None left out)."""
+        out = {}
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if value is None:
+                continue
+            out[f.name] = dict(value) if isinstance(value, Mapping) else value
+        return out
+
+    @classmethod
+    def from_record(cls, record: Mapping):
+        """The statistics of a frame from its record (fields the record lacks take their
+        defaults; fields without a default and missing from it make the record unusable)."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in record.items() if k in names})
+
+
+S = TypeVar("S", bound=FrameStats)
+
+
+class BatchJob(Generic[I]):
+    """The shape of every batch command's job (subclass it as a frozen dataclass).
+
+    A job holds its settings (validated once, in ``__post_init__``) and whatever the batch
+    fixes before frames run; it is pickled to worker processes, so it holds plain data.
+
+    Class attributes
+    ----------------
+    command : str
+        The command (recorded in the folder, compared on the next run).
+    noun : str
+        What the folder holds, for messages (``depth maps``).
+    stats_type : type of FrameStats
+        The per-frame statistics record ``__call__`` returns.
+
+    Subclasses define :meth:`tasks` and :meth:`__call__`; the other methods have defaults.
+    """
+
+    command: ClassVar[str] = ""
+    noun: ClassVar[str] = "results"
+    stats_type: ClassVar[type[FrameStats]] = FrameStats
+
+    # -- what the batch fixes before anything is written --------------------------------------
+    def planned(self, frames: list) -> BatchJob[I]:
+        """This job with what depends on the whole batch fixed (default: itself).
+
+        Raises for a problem every frame would have, before anything is written."""
+        return self
+
+    def tasks(self, frames: list, out_dir: Path) -> list[FrameTask[I]]:
+        """One task per frame (or per group of frames), with outputs under ``out_dir``."""
+        raise NotImplementedError
+
+    # -- what the folder's record holds ---------------------------------------------------------
+    def record(self) -> Mapping:
+        """The settings recorded in the folder and compared on the next run."""
+        return settings_dict(getattr(self, "settings", None))
+
+    def option_names(self) -> Mapping[str, str]:
+        """Recorded setting -> how messages name it (default: the ``option`` metadata of the
+        settings record's fields, else ``--name``)."""
+        return option_names(getattr(self, "settings", None))
+
+    def shared_outputs(self, out_dir: Path) -> tuple[Path, ...]:
+        """Files the run writes besides the frames' own (a merged table, a manifest)."""
+        return ()
+
+    def is_complete(self, out_dir: Path) -> Callable[[FrameTask], bool] | None:
+        """Whether a task's outputs are complete (None: every output file exists)."""
+        return None
+
+    # -- running ----------------------------------------------------------------------------------
+    def prepare(self) -> None:
+        """Load what every frame uses, once, before a pool forks (optional)."""
+
+    def before(self, out_dir: Path) -> None:
+        """Write the shared files the frames read, once the folder is checked (optional)."""
+
+    def __call__(self, task: FrameTask[I]) -> FrameStats:
+        raise NotImplementedError
+
+    def finish(self, summary: RunSummary, tasks: list[FrameTask[I]], out_dir: Path) -> Mapping:
+        """After the frames: merge what they wrote; return the command's totals."""
+        return {}
+
+    # -- reading the results ----------------------------------------------------------------------
+    def stats(self, summary: RunSummary) -> list:
+        """The typed statistics of every frame done now or up to date, in task order."""
+        return [self.stats_type.from_record(r.stats) for r in summary.ok]
+
+
 class _Guarded:
     """Picklable wrapper turning exceptions into FrameResult (so one bad frame can't kill a pool)."""
 
@@ -116,6 +238,8 @@ class _Guarded:
     def __call__(self, task: FrameTask) -> FrameResult:
         try:
             stats = self.fn(task) or {}
+            if isinstance(stats, FrameStats):
+                stats = stats.to_record()
             return FrameResult(task.frame_id, True, stats)
         except SparsetoolsError as exc:
             detail = traceback.format_exc() if self.debug else ""
@@ -284,6 +408,63 @@ def _execute(fn, todo, batch, results, folder, recomputed, desc, on_done, by_id)
     finally:
         if bar is not None:
             bar.close()
+
+
+def run_job(
+    job: BatchJob,
+    frames: Iterable,
+    out_dir: str | os.PathLike,
+    *,
+    batch: Batch | None = None,
+    inputs: Iterable[str | os.PathLike | None] = (),
+    desc: str | None = None,
+) -> RunSummary:
+    """Run a batch command: the one entry point of every batch job.
+
+    Parameters
+    ----------
+    job : BatchJob
+        Its settings already validated.
+    frames : iterable of Frame (or of what the job's :meth:`~BatchJob.tasks` takes)
+        From :mod:`sparsetools.io.sources`.
+    out_dir : path-like
+        Output folder (created). Refused when it is a file, not writable, inside one of
+        ``inputs`` (folders), or when an output would replace an input file.
+    batch : Batch, optional
+        How the batch runs (workers, executor, ``--overwrite``, error policy, progress).
+    inputs : iterable of path-like
+        The paths the user gave (the output folder may not be inside one of them).
+    desc : str, optional
+        Progress bar label (default: the command).
+
+    Returns
+    -------
+    RunSummary
+        Per-frame results and the job's totals (:meth:`BatchJob.finish`).
+    """
+    batch = batch or Batch()
+    frames = list(frames)
+    job = job.planned(frames)
+    out = check_output_dir(out_dir, [p for p in inputs if p is not None])
+    tasks = job.tasks(frames, out)
+    spec = RunSpec(
+        job.command,
+        out,
+        job.record(),
+        noun=job.noun,
+        options=job.option_names(),
+        shared_outputs=tuple(job.shared_outputs(out)),
+    )
+    summary = run_frames(
+        job,
+        tasks,
+        batch=batch,
+        spec=spec,
+        complete=job.is_complete(out),
+        desc=desc or job.command,
+        before=functools.partial(job.before, out),
+    )
+    return summary.with_totals(job.finish(summary, tasks, out))
 
 
 def check_output_dir(out_dir: str | os.PathLike, inputs: Iterable[str | os.PathLike]) -> Path:

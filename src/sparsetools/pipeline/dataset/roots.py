@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import logging
 import os
-from dataclasses import replace
 from pathlib import Path
 
 from ...errors import FormatError, ParameterError
@@ -26,11 +25,6 @@ log = logging.getLogger(__name__)
 
 def _stage(out: Path, name: str) -> Path:
     return Path(out) / SOURCES_DIR / name
-
-
-def _quiet(batch: Batch) -> Batch:
-    """Stages run with the user's executor and policy but never --overwrite of their own."""
-    return replace(batch, as_json=False)
 
 
 def build_nuscenes_dataset(
@@ -79,21 +73,20 @@ def build_nuscenes_dataset(
             log.warning("%d sample(s) lack %s and are left out", len(lost), gt_sensor)
         frames = [f for f in frames if f.key in have]
         gt_frames = [f for f in gt_frames if f.key in {f.key for f in frames}]
-    stage_batch = _quiet(batch)
     run_camera_images(
         frames, _stage(out, "images"), CameraImageSettings(resize=resize, crop=crop),
-        batch=stage_batch,
+        batch=batch,
     )  # fmt: skip
     settings = ProjectSettings(resize=resize, crop=crop, camera=camera)
     run_project(
         project_tasks(frames, _stage(out, "sparse"), settings),
-        _stage(out, "sparse"), settings, batch=stage_batch, inputs=[root],
+        _stage(out, "sparse"), settings, batch=batch, inputs=[root],
     )  # fmt: skip
     gt = None
     if gt_sensor is not None:
         run_project(
             project_tasks(gt_frames, _stage(out, "gt"), settings),
-            _stage(out, "gt"), settings, batch=stage_batch, inputs=[root],
+            _stage(out, "gt"), settings, batch=batch, inputs=[root],
         )  # fmt: skip
         gt = _stage(out, "gt")
     sparse, confidence, source = _stage(out, "sparse"), None, sensor.lower()
@@ -103,7 +96,7 @@ def build_nuscenes_dataset(
         run_jbf_expand(
             [_stage(out, "sparse")], image=_stage(out, "images"),
             calib=_stage(out, "images") / "calib", out_dir=_stage(out, "jbf"),
-            settings=JbfSettings(), batch=stage_batch,
+            settings=JbfSettings(), batch=batch,
         )  # fmt: skip
         sparse = confidence = _stage(out, "jbf")
         source = f"{sensor.lower()}-jbf"
@@ -159,17 +152,16 @@ def build_kitti_raw_dataset(
             f"{root}: not a KITTI raw drive, date folder or root (no <drive>/velodyne_points/"
             "data/ or image_0N/data/ with the calibration pair)"
         )
-    stage_batch = _quiet(batch)
     frames = cloud_frames([root], camera=camera)
     settings = ProjectSettings(camera=camera)
     run_project(
         project_tasks(frames, _stage(out, "gt"), settings), _stage(out, "gt"), settings,
-        batch=stage_batch, inputs=[root],
+        batch=batch, inputs=[root],
     )  # fmt: skip
     sparse = _stage(out, "gt")
     if beams is not None:
         run_beams(frames, _stage(out, f"beams{beams}"), BeamsSettings(n=(beams,)),
-                  batch=stage_batch, inputs=[root])  # fmt: skip
+                  batch=batch, inputs=[root])  # fmt: skip
         raw = kitti_raw_index(root, what="cloud", camera=camera)
         beam_frames = [
             Frame(key=f.key, cloud=f.key.path(_stage(out, f"beams{beams}"), ".bin"),
@@ -178,7 +170,7 @@ def build_kitti_raw_dataset(
         ]  # fmt: skip
         sparse = _stage(out, f"sparse{beams}")
         run_project(project_tasks(beam_frames, sparse, settings), sparse, settings,
-                    batch=stage_batch, inputs=[])  # fmt: skip
+                    batch=batch, inputs=[])  # fmt: skip
     return build_dataset(
         out,
         rgb=root,
