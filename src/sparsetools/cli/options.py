@@ -139,13 +139,25 @@ def warn_deprecated(text: str) -> None:
     logging.getLogger("sparsetools.cli").warning("deprecated: %s", text)
 
 
-def deprecated(old: str, new: str, *, command: str, dest: str, value=None, is_flag=False):
+def deprecated(
+    old: str,
+    new: str,
+    *,
+    command: str,
+    dest: str,
+    value=None,
+    is_flag: bool = False,
+    convert=None,
+    metavar: str | None = None,
+):
     """A hidden alias ``old`` of option ``new`` (stored in parameter ``dest``): it still works
     for one release and prints a one-line warning naming ``new``.
 
     The old text goes through ``new``'s own type and callback, so it is read exactly as the
-    new option reads it. ``value`` (for a flag) is the new option's value the old flag means
-    (``--no-confidence`` -> ``--conf-format none``). Giving both spellings is a usage error.
+    new option reads it; ``convert(text) -> text`` first rewrites it where the syntax changed
+    too (``train --crop HxW`` -> ``--crop-size WxH``). ``value`` (for a flag) is the new
+    option's value the old flag means (``--no-confidence`` -> ``--conf-format none``). Giving
+    both spellings is a usage error.
     """
     DEPRECATED[(command, old)] = new
 
@@ -169,7 +181,13 @@ def deprecated(old: str, new: str, *, command: str, dest: str, value=None, is_fl
                     kw[dest] = value
                 else:
                     target = next(p for p in ctx.command.params if p.name == dest)
-                    kw[dest] = target.process_value(ctx, store[old])
+                    text = store[old]
+                    if convert is not None:
+                        try:
+                            text = convert(text)
+                        except (TypeError, ValueError) as exc:
+                            raise click.BadParameter(str(exc), param_hint=old) from None
+                    kw[dest] = target.process_value(ctx, text)
             return f(*args, **kw)
 
         return click.option(
@@ -177,6 +195,7 @@ def deprecated(old: str, new: str, *, command: str, dest: str, value=None, is_fl
             is_flag=is_flag,
             default=None,
             hidden=True,
+            metavar=metavar,
             expose_value=False,
             callback=remember,
             help=f"Deprecated: use {new}.",
