@@ -1,0 +1,115 @@
+"""Every batch command writes what sparsetools 0.2.0 wrote, records what it recorded, and
+resumes a folder that 0.2.0 made.
+
+The expected values are ``tests/golden/v0.2.0.json``, made by the 0.2.0 code itself
+(``PYTHONPATH=<0.2.0 checkout>/src python tests/golden/make_golden.py``) from one canonical
+invocation per command (``tests/golden/cases.py``); today's code runs the same invocation in
+today's spelling of the options.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from sparsetools.cli.main import cli
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "tests"))
+
+from golden.canon import digests, record  # noqa: E402
+from golden.cases import CASES, DERIVED, make_raw_tree  # noqa: E402
+
+GOLDEN = json.loads((ROOT / "tests" / "golden" / "v0.2.0.json").read_text())
+REAL = ROOT.parent / "shared" / "data" / "real"
+
+
+def expand(args, data: Path, out: Path) -> list[str]:
+    return [a.format(S=ROOT / "sample_data" / "synthetic", K=ROOT / "sample_data" / "kitti",
+                     D=data, O=out, R=REAL) for a in args]  # fmt: skip
+
+
+def substitutions(data: Path, out: Path) -> dict[str, str]:
+    subs = {}
+    for path, name in ((ROOT, "{ROOT}"), (data, "{D}"), (out, "{O}"),
+                       (ROOT.parent / "shared", "{SHARED}")):  # fmt: skip
+        subs[str(path)] = name
+        subs[str(path.resolve())] = name
+    return subs
+
+
+def run(args) -> dict:
+    r = CliRunner().invoke(cli, ["-q", *args, "--json"])
+    assert r.exit_code == 0, r.output
+    return json.loads(r.stdout)
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    root = tmp_path_factory.mktemp("derived")
+    have_real = REAL.is_dir()
+    if have_real:
+        make_raw_tree(REAL, root / "raw")
+    for name, args in DERIVED.items():
+        if "{D}/raw" in " ".join(args) and not have_real:
+            continue
+        run(expand(args, root, root / name))
+    return root
+
+
+def _case(name: str) -> dict:
+    case = CASES[name]
+    if case.get("real") and not REAL.is_dir():
+        pytest.skip("needs ../shared/data/real (absent on this machine)")
+    return case
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_same_bytes_and_record_as_020(name, data, tmp_path):
+    case = _case(name)
+    out = tmp_path / name
+    run(expand(case["new"], data, out))
+    subs = substitutions(data, out)
+    golden = GOLDEN["cases"][name]
+    assert digests(out, subs) == golden["digests"]
+    rec = record(out, subs)
+    assert rec["run"]["command"] == golden["record"]["run"]["command"]
+    assert rec["run"]["settings"] == golden["record"]["run"]["settings"]
+    assert rec["frames"] == golden["record"]["frames"]
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_a_folder_made_by_020_resumes(name, data, tmp_path):
+    """Today's outputs with 0.2.0's record (run record, outputs and statistics per frame; the
+    input identities are this machine's): the same command is a no-op."""
+    case = _case(name)
+    out = tmp_path / name
+    args = expand(case["new"], data, out)
+    first = run(args)
+    golden = GOLDEN["cases"][name]["record"]
+    rec = out / ".sparsetools"
+    if golden:
+        subs = {v: k for k, v in substitutions(data, out).items()}  # placeholders back
+        old_run = json.loads(_unsubst(json.dumps(golden["run"]), subs))
+        (rec / "run.json").write_text(json.dumps(old_run, indent=1, sort_keys=True) + "\n")
+        lines = []
+        for line in (rec / "frames.jsonl").read_text().splitlines():
+            d = json.loads(line)
+            old = json.loads(_unsubst(json.dumps(golden["frames"][d["key"]]), subs))
+            lines.append(json.dumps({**d, **old}, sort_keys=True))
+        (rec / "frames.jsonl").write_text("\n".join(lines) + "\n")
+    before = digests(out, {})
+    again = run(args)
+    tasks = first.get("segments", first["frames"])
+    assert again["processed"] == 0 and again["skipped_existing"] == tasks
+    assert digests(out, {}) == before
+
+
+def _unsubst(text: str, subs: dict[str, str]) -> str:
+    for placeholder, path in subs.items():
+        text = text.replace(placeholder, path)
+    return text
