@@ -41,9 +41,9 @@ def load_frame():
 
     if (KITTI / "velodyne" / "000001.bin").is_file():
         from sparsetools.io.calib import load_calibration
-        from sparsetools.pipeline.beams import read_cloud_strict
+        from sparsetools.io.pointcloud import read_points
 
-        points = read_cloud_strict(KITTI / "velodyne" / "000001.bin")
+        points = read_points(KITTI / "velodyne" / "000001.bin", strict=True)
         calib = load_calibration(KITTI / "calib" / "000001.txt").with_size(1242, 375)
         return points, calib, "KITTI 000001"
     rng = np.random.default_rng(0)

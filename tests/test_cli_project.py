@@ -821,7 +821,7 @@ def test_crop_outside_the_image(frame, tmp_path):
         (["--calib", "{d}/calib"], "exactly one source"),
         (["{d}/velodyne"], "give --calib"),
         (["{d}/velodyne", "--calib", "{d}/calib", "--crop", "1,2,3"], "WxH+LEFT+TOP"),
-        (["{d}/velodyne", "--calib", "{d}/calib", "--crop", "0,0,0,5"], "H, W > 0"),
+        (["{d}/velodyne", "--calib", "{d}/calib", "--crop", "5x0+0+0"], "W, H > 0"),
         (["{d}/velodyne", "--calib", "{d}/calib", "--pixel-offset", "1"], "--pixel-offset"),
         (["--kitti-object", "{d}", "--camera", "left"], "camera"),
         (["{d}/velodyne", "--calib", "{d}/calib", "--resize", "0"], "finite number > 0"),

@@ -56,6 +56,7 @@ _LAZY = {
     "UnderwaterCompensator": ".ops.underwater",
     "median_failure_probability": ".ops.underwater",
     "run_frames": ".pipeline",
+    "run_job": ".pipeline",
 }
 
 __all__ = ["SparsetoolsError", "__version__", *sorted(_LAZY)]

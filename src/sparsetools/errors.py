@@ -14,6 +14,7 @@ __all__ = [
     "OutputError",
     "ParameterError",
     "SparsetoolsError",
+    "UsageError",
 ]
 
 
@@ -58,6 +59,11 @@ class ParameterError(SparsetoolsError, ValueError):
         if not self.param:
             return None
         return self.param if self.param.startswith("-") else "--" + self.param.replace("_", "-")
+
+
+class UsageError(ParameterError):
+    """Options that do not go together, or one that is missing: the command line exits with
+    code 2, as for its own usage errors."""
 
 
 class OutputError(SparsetoolsError):

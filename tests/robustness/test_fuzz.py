@@ -174,13 +174,13 @@ def test_read_radar_pcd(tmp_path):
 
 @pytest.mark.parametrize("suffix", [".bin", ".npy"])
 def test_beams_strict_reader(suffix, tmp_path):
-    from sparsetools.pipeline.beams import read_cloud_strict
+    from sparsetools.io.pointcloud import read_points
 
     @FUZZ
     @given(data=bytes_or_mutation(*SEEDS[suffix]))
     def check(data):
         p = write(tmp_path / f"cloud{suffix}", data)
-        pts = ours_or_success(read_cloud_strict, p)
+        pts = ours_or_success(read_points, p, strict=True)
         if pts is not None:
             assert pts.shape[0] > 0 and np.isfinite(pts).all()
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 
@@ -10,11 +11,12 @@ import click
 from .options import (
     batch_options,
     calib_option,
+    checked,
     emit_summary,
     image_option,
     image_size_option,
-    int_list,
     output_dir_option,
+    size_wxh,
 )
 
 _INTS = re.compile(r"^\d+(,\d+)*,?$")
@@ -46,28 +48,22 @@ class _GreedyIntsOption(click.Option):
 
 
 def _n_values(ctx, param, value):
-    if value is None:
-        return ()
-    try:
-        values = tuple(int(v) for v in value.replace(" ", "").split(",") if v)
-    except ValueError:
-        raise click.BadParameter(f"expected N or a list such as 1,2,4,16; got {value!r}") from None
-    if not values:
+    """``--n 4`` or ``--n 1,2,4,16``: beam counts >= 1, each once."""
+    from ..validate import parse_int_list
+
+    values = checked(lambda v: parse_int_list(v, "n", low=1, unique=True))(ctx, param, value)
+    if value is not None and not values:
         raise click.BadParameter("no beam count given")
-    if any(v < 1 for v in values):
-        raise click.BadParameter(f"beam counts must be >= 1, got {value!r}")
-    if len(set(values)) != len(values):
-        raise click.BadParameter(f"beam counts repeat: {value!r}")
-    return values
+    return values or ()
 
 
 def _non_negative_ints(ctx, param, value):
-    values = int_list(ctx, param, value)
-    if values is not None and any(v < 0 for v in values):
-        raise click.BadParameter(f"ring / bin numbers must be >= 0, got {value!r}")
-    if values is not None and len(set(values)) != len(values):
-        raise click.BadParameter(f"values repeat: {value!r}")
-    return values
+    """Ring or bin numbers >= 0, each once."""
+    from ..validate import parse_int_list
+
+    if value is None or value == ():
+        return None
+    return checked(lambda v: parse_int_list(v, param.name, low=0, unique=True))(ctx, param, value)
 
 
 @click.command("beams")
@@ -127,6 +123,7 @@ def _non_negative_ints(ctx, param, value):
     "--pl-grid",
     default="1024x64",
     show_default=True,
+    callback=size_wxh,
     metavar="WxH",
     help="pl++ grid: W azimuth bins over 90 deg, H elevation bins of 0.4*64/H deg.",
 )
@@ -197,23 +194,19 @@ def beams(
       sparsetools beams --report kitti/velodyne/000001.bin
     """
     from ..io.sources import cloud_frames
-    from ..pipeline.beams import BeamsSettings, ring_report, run_beams
+    from ..pipeline import run_job
+    from ..pipeline.beams import BeamsJob, BeamsSettings, ring_report
 
-    m = re.fullmatch(r"(\d+)x(\d+)", pl_grid.lower())
-    if not m or int(m.group(1)) < 1 or int(m.group(2)) < 1:
-        raise click.BadParameter(
-            f"expected WxH such as 1024x64, got {pl_grid!r}", param_hint="--pl-grid"
-        )
-    pl_width, pl_height = int(m.group(1)), int(m.group(2))
+    pl_width, pl_height = pl_grid
     if report:
-        settings = BeamsSettings(
-            n=(1,),
-            ring_method=ring_method,
-            n_lasers=n_lasers,
-            profile=profile,
-            far_range=far_range,
-        )
-        _print_report(ring_report(list(clouds), settings), as_json)
+        settings = BeamsSettings(n=(1,), ring_method=ring_method, n_lasers=n_lasers,
+                                 profile=profile, far_range=far_range)  # fmt: skip
+        reports = ring_report(list(clouds), settings)
+        if as_json:
+            click.echo(json.dumps([r.to_dict() for r in reports], indent=1))
+        else:
+            for r in reports:
+                click.echo(r.format())
         return
     if out_dir is None:
         raise click.UsageError("Missing option '-o' / '--out' (or use --report).")
@@ -233,28 +226,10 @@ def beams(
         pl_height=pl_height,
         fmt=fmt,
         far_range=far_range,
+        image_size=image_size,
     )
     # A KITTI raw / object tree brings its calibration: the density is reported then too.
     frames = cloud_frames(list(clouds), calib=calib, image=image)
-    inputs = [*clouds, *([calib] if calib else []), *([image] if image else [])]
-    summary = run_beams(
-        frames, out_dir, settings, image_size=image_size, batch=batch, inputs=inputs
-    )
+    summary = run_job(BeamsJob(settings), frames, out_dir, batch=batch,
+                      inputs=[*clouds, calib, image])  # fmt: skip
     emit_summary(summary, as_json=as_json, title=f"beams written to {out_dir}")
-
-
-def _print_report(reports: list[dict], as_json: bool) -> None:
-    import json
-
-    if as_json:
-        click.echo(
-            json.dumps([{k: v for k, v in r.items() if k != "_table"} for r in reports], indent=1)
-        )
-        return
-    for r in reports:
-        order = "decreasing" if r["monotonic"] else "NOT monotonic"
-        click.echo(
-            f"{r['cloud']}: {r['points']} points, {r['rings']} rings "
-            f"({r['ring_method']}, {r['n_lasers']} lasers), median elevation {order}"
-        )
-        click.echo(r["_table"].format())

@@ -14,7 +14,7 @@ import sys
 import click
 
 from .._version import __version__
-from ..errors import FrameError
+from ..errors import FrameError, UsageError
 
 # command name -> "module:function" under sparsetools.cli
 COMMANDS = {
@@ -77,7 +77,7 @@ class LazyGroup(click.Group):
             # One line, whatever the message holds (third-party texts can span lines).
             first = text.split("\n", 1)[0] if isinstance(exc, FrameError) else text
             click.echo(f"Error: {' '.join(first.split())}", err=True)
-            ctx.exit(1)
+            ctx.exit(2 if isinstance(exc, UsageError) else 1)
         except KeyboardInterrupt:
             click.echo("Interrupted: completed outputs are kept; rerun to resume.", err=True)
             ctx.exit(130)

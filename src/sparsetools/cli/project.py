@@ -118,41 +118,17 @@ def project(
       sparsetools project --kitti-object kitti -o out/depth --pixel-offset -1
       sparsetools project raw/2011_09_26 -o out/raw       # every drive of the date
       sparsetools project --nuscenes nuscenes --sensor RADAR_FRONT --camera CAM_FRONT \\
-          --sweeps 5 --resize 0.5 --crop 100,0,350,800 -o out/radar
+          --sweeps 5 --resize 0.5 --crop 800x350+0+100 -o out/radar
     """
-    from ..io.sources import cloud_frames, nuscenes_frames
-    from ..pipeline.project import ProjectSettings, project_tasks, run_project
+    from ..io.sources import cloud_source
+    from ..pipeline import run_job
+    from ..pipeline.project import ProjectJob, ProjectSettings
 
-    given = [
-        name
-        for name, v in (
-            ("CLOUD", clouds),
-            ("--kitti-raw", kitti_raw),
-            ("--kitti-object", kitti_object),
-            ("--nuscenes", nuscenes),
-        )
-        if v
-    ]
-    if len(given) != 1:
-        raise click.UsageError(
-            "give exactly one source: CLOUD..., --kitti-raw, --kitti-object or --nuscenes"
-            + (f" (got {', '.join(given)})" if given else "")
-        )
-    if not clouds and (calib is not None or image is not None):
-        opt = "--calib" if calib is not None else "--image"
-        raise click.UsageError(f"{opt} goes with CLOUD arguments ({given[0]} has its own)")
-    if nuscenes:
-        cam = camera or "CAM_FRONT"
-    elif camera is None:
-        cam = 2
-    elif camera.isdigit():
-        cam = int(camera)
-    elif clouds:
-        cam = camera  # a camera name, for JSON calibrations holding several cameras
-    else:
-        raise click.BadParameter(
-            f"KITTI camera is an index 0-3, got {camera!r}", param_hint="--camera"
-        )
+    source = cloud_source(
+        clouds=clouds, kitti_raw=kitti_raw, kitti_object=kitti_object, nuscenes=nuscenes,
+        calib=calib, image=image, camera=camera, nuscenes_version=nuscenes_version,
+        sensor=sensor, sweeps=sweeps,
+    )  # fmt: skip
     settings = ProjectSettings(
         fmt=fmt,
         min_depth=min_depth,
@@ -160,27 +136,9 @@ def project(
         pixel_offset=int(pixel_offset),
         resize=resize,
         crop=crop,
-        camera=cam,
+        camera=source.camera,
         image_size=image_size,
     )
-    kitti_cam = cam if isinstance(cam, int) else 2
-    if nuscenes:
-        n = sweeps if sweeps is not None else (5 if sensor.upper().startswith("RADAR") else 1)
-        frames = nuscenes_frames(
-            nuscenes, version=nuscenes_version, sensor=sensor, camera=cam, sweeps=n
-        )
-        inputs = [nuscenes]
-    else:
-        sources = list(clouds) or list(kitti_raw) or [kitti_object]
-        frames = cloud_frames(sources, calib=calib, image=image, camera=kitti_cam)
-        inputs = [*sources, *([calib] if calib else []), *([image] if image else [])]
-        missing = [f for f in frames if f.calib is None]
-        if missing:
-            raise click.UsageError(
-                f"no calibration for {missing[0].cloud}: give --calib (a file, a KITTI raw "
-                "date folder or per-frame files), or point CLOUD at a KITTI raw drive / date "
-                "folder or a KITTI object root, whose calibration is found in the tree"
-            )
-    tasks = project_tasks(frames, out_dir, settings)
-    summary = run_project(tasks, out_dir, settings, batch=batch, inputs=inputs)
+    summary = run_job(ProjectJob(settings), source.frames, out_dir, batch=batch,
+                      inputs=source.inputs)  # fmt: skip
     emit_summary(summary, as_json=as_json, title=f"sparse depth maps in {out_dir}")

@@ -24,6 +24,9 @@ from ..errors import CalibrationError, FormatError
 from .atomic import atomic_path
 
 __all__ = [
+    "PRINCIPAL_POINT_MARGIN",
+    "check_principal_point",
+    "frame_calibration",
     "load_calibration",
     "read_json_calib",
     "read_key_value_file",
@@ -384,4 +387,98 @@ def load_calibration(
         raise FormatError(f"{p}: unknown calibration format (expected .txt, .json or a folder)")
     if image_size is not None:
         calib = calib.with_size(*image_size)
+    return calib
+
+
+#: The principal point of a camera's own (uncropped) images lies within this fraction of the
+#: image size from its centre; farther, the calibration belongs to other images.
+PRINCIPAL_POINT_MARGIN = 0.4
+
+
+def check_principal_point(calib: Calibration, *, given_by: str) -> None:
+    """Refuse a calibration whose principal point is outside the image or far from its centre
+    (more than :data:`PRINCIPAL_POINT_MARGIN` of the size): the intrinsics of other images."""
+    w, h = calib.width, calib.height
+    off_u, off_v = abs(calib.cx - w / 2) / w, abs(calib.cy - h / 2) / h
+    if max(off_u, off_v) > PRINCIPAL_POINT_MARGIN:
+        where = "outside the image" if not (0 <= calib.cx < w and 0 <= calib.cy < h) else (
+            "far from its centre")  # fmt: skip
+        raise CalibrationError(
+            f"calibration {calib.source or ''}: principal point ({calib.cx:g}, {calib.cy:g}) is "
+            f"{where} of the {w}x{h} image ({given_by}): the calibration is for other images"
+        )
+
+
+def frame_calibration(
+    *,
+    calib_path: str | os.PathLike | None = None,
+    calibration: Calibration | None = None,
+    camera: int | str = 2,
+    image: str | os.PathLike | None = None,
+    image_size: tuple[int, int] | None = None,
+    resize: float | None = None,
+    crop: tuple[int, int, int, int] | None = None,
+    what: str = "depth map",
+) -> Calibration:
+    """The calibration a frame's map uses: loaded, sized, checked, resized, cropped.
+
+    The image size comes from ``image_size`` (``--image-size``), the frame's image header, or
+    the calibration's own size (KITTI raw ``S_rect``, a JSON ``width``/``height``, nuScenes);
+    every size that is known must agree with the others (a calibration of other images is
+    refused, never stretched), and the principal point must lie near the image's centre
+    (:func:`check_principal_point`).
+
+    Parameters
+    ----------
+    calib_path : path-like, optional
+        Calibration file or KITTI raw calibration folder (when ``calibration`` is None).
+    calibration : Calibration, optional
+        Already loaded (shared by a batch) or computed by the source (nuScenes).
+    camera : int or str
+        KITTI camera index or camera name of a JSON calibration.
+    image : path-like, optional
+        The frame's camera image (only its header is read).
+    image_size : (width, height), optional
+    resize : float, optional
+        Scale the image and intrinsics first.
+    crop : (top, left, height, width), optional
+        Then crop (in resized pixels).
+    what : str
+        What the map is, for the pixel-count message.
+
+    Raises
+    ------
+    ParameterError
+        No size known, a crop that does not fit, or too many pixels.
+    CalibrationError
+        Sizes that disagree, or a principal point far from the image's centre.
+    """
+    from ..errors import ParameterError
+    from .image import check_pixel_count, image_size_of
+
+    calib = calibration
+    if calib is None:
+        if calib_path is None:
+            raise ParameterError("no calibration: give --calib")
+        calib = load_calibration(calib_path, camera=camera)
+    given_by = "its own size"
+    if image_size is not None:
+        calib = calib.for_size(*image_size, given_by="--image-size")
+        given_by = "--image-size"
+    if image is not None:
+        calib = calib.for_size(*image_size_of(image), given_by=f"image {image}")
+        given_by = f"image {image}"
+    if calib.width is None or calib.height is None:
+        raise ParameterError(
+            "image size missing: give --image-size WxH or --image IMG "
+            f"(calibration {calib.source or calib_path or '?'} holds no size)"
+        )
+    check_principal_point(calib, given_by=given_by)
+    if resize is not None:
+        calib = calib.resized(resize)
+    if crop is not None:
+        top, left, h, w = crop
+        calib = calib.cropped(top, left, h, w)
+    # A size from an option or a calibration file is not bounded by anything else.
+    check_pixel_count(calib.width, calib.height, what)
     return calib

@@ -35,7 +35,9 @@ def drop_non_finite(points: np.ndarray, *, source: str = "") -> tuple[np.ndarray
     return points, dropped
 
 
-def read_velodyne_bin(path: str | os.PathLike, *, n_columns: int = 4) -> np.ndarray:
+def read_velodyne_bin(
+    path: str | os.PathLike, *, n_columns: int = 4, drop_non_finite_rows: bool = True
+) -> np.ndarray:
     """Read a KITTI Velodyne scan.
 
     Parameters
@@ -45,6 +47,8 @@ def read_velodyne_bin(path: str | os.PathLike, *, n_columns: int = 4) -> np.ndar
     n_columns : int
         Floats per point: 4 for KITTI (x, y, z, reflectance), 5 for nuScenes LIDAR_TOP
         (x, y, z, intensity, ring).
+    drop_non_finite_rows : bool
+        Drop rows holding NaN/Inf (with a warning); False keeps every row as stored.
 
     Returns
     -------
@@ -80,7 +84,8 @@ def read_velodyne_bin(path: str | os.PathLike, *, n_columns: int = 4) -> np.ndar
         raise FormatError(f"{path}: cannot read ({exc.strerror or exc})") from exc
     # A no-op on little-endian machines; a byte swap on others.
     points = points.astype(np.float32, copy=False)
-    points, _ = drop_non_finite(points, source=str(path))
+    if drop_non_finite_rows:
+        points, _ = drop_non_finite(points, source=str(path))
     return points
 
 

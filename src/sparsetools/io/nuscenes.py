@@ -56,9 +56,9 @@ def _pcd_dtype(fields, sizes, types) -> np.dtype:
 RADAR_DTYPE = _pcd_dtype(RADAR_FIELDS, RADAR_SIZES, RADAR_TYPES)
 
 
-def read_lidar_pcd_bin(path: str | os.PathLike) -> np.ndarray:
+def read_lidar_pcd_bin(path: str | os.PathLike, *, drop_non_finite_rows: bool = True) -> np.ndarray:
     """Read a nuScenes LIDAR_TOP ``.pcd.bin``: (N, 5) float32 x, y, z, intensity, ring (0..31)."""
-    return read_velodyne_bin(path, n_columns=5)
+    return read_velodyne_bin(path, n_columns=5, drop_non_finite_rows=drop_non_finite_rows)
 
 
 @dataclass(frozen=True)

@@ -236,21 +236,45 @@ def _read_open3d(path: Path) -> np.ndarray:
     return points
 
 
-def read_points(path: str | os.PathLike) -> np.ndarray:
+def read_points(path: str | os.PathLike, *, strict: bool = False) -> np.ndarray:
     """Read a point cloud of any supported format (see the module table).
+
+    Parameters
+    ----------
+    path : path-like
+    strict : bool
+        Every row must be kept or the file refused (``beams`` writes exact subsets of its
+        input): an empty cloud and rows holding NaN/Inf are errors instead of a cloud with
+        those rows dropped (PCD/PLY rows Open3D drops are still dropped, with a warning).
 
     Returns
     -------
     (N, C) float32
         x, y, z in metres in the sensor frame first, then the format's other columns, in
-        file order. Rows with NaN/Inf are dropped with a warning.
+        file order. Rows with NaN/Inf are dropped with a warning (refused with ``strict``).
+
+    Raises
+    ------
+    FormatError
+        Missing, unreadable, truncated or corrupt file; with ``strict`` also an empty cloud
+        or NaN/Inf values.
     """
-    p = Path(path)
+    points = _read(Path(path), keep=strict)
+    if strict:
+        if points.shape[0] == 0:
+            raise FormatError(f"{path}: empty file (no points)")
+        bad = int(np.count_nonzero(~np.isfinite(points).all(axis=1)))
+        if bad:
+            raise FormatError(f"{path}: {bad} point(s) hold NaN/Inf values (corrupt file?)")
+    return points
+
+
+def _read(p: Path, *, keep: bool) -> np.ndarray:
     kind = cloud_kind(p)
     if kind == "kitti-bin":
-        return read_velodyne_bin(p)
+        return read_velodyne_bin(p, drop_non_finite_rows=not keep)
     if kind == "nuscenes-bin":
-        return read_lidar_pcd_bin(p)
+        return read_lidar_pcd_bin(p, drop_non_finite_rows=not keep)
     if kind == "radar-pcd":
         return read_radar_pcd(p)
     if kind == "npy":
@@ -267,7 +291,7 @@ def read_points(path: str | os.PathLike) -> np.ndarray:
             raise FormatError(f"{p}: expected a numeric (N, C>=3) array, got {a.dtype} {a.shape}")
         with np.errstate(over="ignore", invalid="ignore"):  # beyond float32: Inf, dropped
             a = a.astype(np.float32)
-        return drop_non_finite(a, source=str(p))[0]
+        return a if keep else drop_non_finite(a, source=str(p))[0]
     return _read_open3d(p)
 
 

@@ -99,6 +99,8 @@ class RunSummary:
     seconds: float = 0.0
     totals: dict[str, Any] = field(default_factory=dict)
     removed_stale: int = 0
+    #: the run replaced the folder's results (``--overwrite``)
+    overwrite: bool = False
 
     @property
     def done(self) -> list[FrameResult]:

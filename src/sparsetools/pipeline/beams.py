@@ -20,12 +20,15 @@ from __future__ import annotations
 
 import logging
 import os
-from dataclasses import dataclass, field
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
 from ..errors import FormatError, ParameterError, SparsetoolsError
+from ..io.pointcloud import read_points
 from ..io.sensor_profile import load_sensor_profile
 from ..io.sources import Frame
 from ..ops.beams import SELECT_MODES, horizon_rings, pl_line_spec, select_beams, uniform_rings
@@ -37,9 +40,10 @@ from ..ops.rings import (
     ring_elevations,
     ring_table,
 )
-from ..validate import check_choice, check_non_negative
-from .batch import Batch, RunSummary
-from .core import FrameTask, RunSpec, check_output_dir, run_frames
+from ..validate import check_choice, check_int_range, check_non_negative, parse_size
+from .batch import RunSummary
+from .core import BatchJob, FrameStats, FrameTask
+from .provenance import option_names, settings_dict
 
 __all__ = [
     "FORMATS",
@@ -47,12 +51,10 @@ __all__ = [
     "BeamsInput",
     "BeamsJob",
     "BeamsSettings",
-    "beams_tasks",
+    "BeamsStats",
     "plan_selection",
-    "read_cloud_strict",
     "recover_cloud_rings",
     "ring_report",
-    "run_beams",
 ]
 
 log = logging.getLogger(__name__)
@@ -87,6 +89,8 @@ class BeamsSettings:
         pl++ grid.
     fmt : {"bin", "npy", "pcd"}
     far_range : float, metres
+    image_size : (width, height), optional
+        Size of the density maps when the calibration holds none.
     """
 
     n: tuple[int, ...] = ()
@@ -100,6 +104,7 @@ class BeamsSettings:
     pl_height: int = 64
     fmt: str = field(default="bin", metadata={"option": "--format"})
     far_range: float = 20.0
+    image_size: tuple[int, int] | None = None
 
     def __post_init__(self) -> None:
         check_choice(self.fmt, "--format", FORMATS)
@@ -107,10 +112,8 @@ class BeamsSettings:
             check_choice(self.select, "select", SELECT_MODES)
         if self.ring_method is not None:
             check_choice(self.ring_method, "ring_method", RING_METHODS)
-        n = tuple(int(v) for v in self.n)
+        n = tuple(check_int_range(v, "--n", low=1) for v in self.n)
         object.__setattr__(self, "n", n)
-        if any(v < 1 for v in n):
-            raise ParameterError(f"N must be >= 1, got {n}")
         if len(set(n)) != len(n):
             raise ParameterError(f"N repeats a value: {n}")
         if self.rings is not None:
@@ -129,9 +132,11 @@ class BeamsSettings:
                 )
         if not n and self.rings is None and self.line_spec is None:
             raise ParameterError("give the number of beams (--n), --rings or --line-spec")
-        if self.n_lasers is not None and not 1 <= self.n_lasers <= 256:
-            raise ParameterError(f"--lasers must be in 1..256, got {self.n_lasers}")
+        if self.n_lasers is not None:
+            check_int_range(self.n_lasers, "--lasers", low=1, high=256)
         check_non_negative(self.far_range, "far_range")
+        if self.image_size is not None:
+            object.__setattr__(self, "image_size", parse_size(self.image_size))
 
     @property
     def mode(self) -> str:
@@ -152,63 +157,6 @@ class BeamsSettings:
 
 def _is_nuscenes(path: str | os.PathLike) -> bool:
     return Path(path).name.lower().endswith(".pcd.bin")
-
-
-def read_cloud_strict(path: str | os.PathLike) -> np.ndarray:
-    """Read a cloud for beam selection: empty files and NaN/Inf values are errors.
-
-    (The general reader drops non-finite rows with a warning; here every row must be kept or
-    refused, since outputs are exact subsets of the input.)
-
-    Returns
-    -------
-    (N, C) float32, rows in file order
-    """
-    from ..io.pointcloud import cloud_kind, read_points
-
-    p = Path(path)
-    kind = cloud_kind(p)
-    if kind in ("kitti-bin", "nuscenes-bin"):
-        columns = 4 if kind == "kitti-bin" else 5
-        try:
-            data = p.read_bytes()
-        except FileNotFoundError as exc:
-            raise FormatError(f"{p}: no such file") from exc
-        except IsADirectoryError as exc:
-            raise FormatError(f"{p}: is a folder, expected a point cloud") from exc
-        except OSError as exc:
-            raise FormatError(f"{p}: cannot read ({exc.strerror or exc})") from exc
-        if len(data) % (4 * columns):
-            raise FormatError(
-                f"{p}: size {len(data)} bytes is not a multiple of {4 * columns} "
-                f"({columns} float32 per point): truncated or not a point cloud"
-            )
-        raw = np.frombuffer(data, dtype="<f4")
-        points = raw.reshape(-1, columns).astype(np.float32)
-    elif kind == "npy":
-        from ..io.npy import load_npy
-
-        try:
-            data = p.read_bytes()
-        except FileNotFoundError as exc:
-            raise FormatError(f"{p}: no such file") from exc
-        except OSError as exc:
-            raise FormatError(f"{p}: cannot read ({exc.strerror or exc})") from exc
-        points = load_npy(data, source=str(p))
-        if points.ndim != 2 or points.shape[1] < 3 or points.dtype.kind not in "fiu":
-            raise FormatError(
-                f"{p}: expected a numeric (N, C>=3) array, got {points.dtype} {points.shape}"
-            )
-        with np.errstate(over="ignore", invalid="ignore"):  # beyond float32: Inf, refused below
-            points = points.astype(np.float32)
-    else:  # PCD / PLY through Open3D
-        points = read_points(p)
-    if points.shape[0] == 0:
-        raise FormatError(f"{p}: empty file (no points)")
-    bad = int(np.count_nonzero(~np.isfinite(points).all(axis=1)))
-    if bad:
-        raise FormatError(f"{p}: {bad} point(s) hold NaN/Inf values (corrupt file?)")
-    return points
 
 
 def _resolved(settings: BeamsSettings, path: str | os.PathLike) -> tuple[str, int]:
@@ -331,7 +279,7 @@ def _laser_elevations(clouds, settings, method, n_lasers) -> tuple[np.ndarray, s
         if len(used) == _ELEVATION_FRAMES:
             break
         try:
-            points = read_cloud_strict(path)
+            points = read_points(path, strict=True)
             ring, _, _ = recover_cloud_rings(points, path, settings)
         except SparsetoolsError as exc:  # that frame fails again in its own job
             log.info("%s: not used for the laser elevations (%s)", path, exc)
@@ -371,30 +319,17 @@ def _output_suffix(settings: BeamsSettings, cloud: Path) -> str:
     return f".{settings.fmt}"
 
 
-def _frame_calibration(calib_path, image, image_size, camera=2):
-    from ..io.calib import load_calibration
-    from ..io.image import check_pixel_count, image_size_of
+def _frame_calibration(inp: BeamsInput, image_size):
+    from ..io.calib import frame_calibration
 
-    calib = load_calibration(calib_path, camera=camera)
-    if image_size is not None:
-        calib = calib.for_size(*image_size, given_by="--image-size")
-    elif image is not None:
-        calib = calib.for_size(*image_size_of(image), given_by=f"image {image}")
-    elif calib.width is None or calib.height is None:
-        raise ParameterError(
-            f"image size missing: give --image-size WxH or --image IMG "
-            f"(calibration {calib.source or calib_path} holds none)"
-        )
-    check_pixel_count(calib.width, calib.height, "depth map")
-    return calib
+    return frame_calibration(calib_path=inp.calib_path, image=inp.image, image_size=image_size)
 
 
-def _density_pct(points: np.ndarray, calib) -> tuple[float, int]:
+def _density_pct(points: np.ndarray, calib) -> float:
     from ..ops.projection import project_points
 
     depth = project_points(points, calib)
-    valid = int(np.count_nonzero(depth))
-    return 100.0 * valid / depth.size, valid
+    return 100.0 * int(np.count_nonzero(depth)) / depth.size
 
 
 @dataclass(frozen=True)
@@ -407,37 +342,136 @@ class BeamsInput:
 
 
 @dataclass(frozen=True)
-class BeamsJob:
-    """The per-frame job of ``beams`` (picklable): recover rings, keep every output set's
-    beams and write them (atomically).
+class BeamsStats(FrameStats):
+    """One frame: points read; with rings, the ring method used (``elevation`` after a fall
+    back), whether it fell back, rings found; per output set (``n4``, or ``n<N>`` of a single
+    set) the points kept and, with a calibration, the density of its projected map (percent of
+    the pixels); and the density of the full cloud's map.
 
-    Returns per frame: points_in, ring_method (``elevation`` after a fall back), rings_found,
-    kept_<label> per output set and, with a calibration, density_<label>_pct and
-    density_all_pct (the full cloud).
+    Recorded flat, as ``kept_<set>`` and ``density_<set>_pct``.
     """
 
-    settings: BeamsSettings
-    plan: _Plan
-    image_size: tuple[int, int] | None = None
+    points_in: int
+    kept: Mapping[str, int] = field(default_factory=dict)
+    density_pct: Mapping[str, float] = field(default_factory=dict)
+    ring_method: str | None = None
+    ring_fallback: int | None = None
+    rings_found: int | None = None
+    density_all_pct: float | None = None
 
-    def __call__(self, task: FrameTask[BeamsInput]) -> dict:
+    def to_record(self) -> dict:
+        out: dict = {"points_in": self.points_in}
+        for name in ("ring_method", "ring_fallback", "rings_found"):
+            if getattr(self, name) is not None:
+                out[name] = getattr(self, name)
+        for key, kept in self.kept.items():
+            out[f"kept_{key}"] = kept
+            if key in self.density_pct:
+                out[f"density_{key}_pct"] = self.density_pct[key]
+        if self.density_all_pct is not None:
+            out["density_all_pct"] = self.density_all_pct
+        return out
+
+    @classmethod
+    def from_record(cls, record: Mapping) -> BeamsStats:
+        kept = {k[len("kept_") :]: v for k, v in record.items() if k.startswith("kept_")}
+        density = {k[len("density_"):-len("_pct")]: v for k, v in record.items()
+                   if k.startswith("density_") and k.endswith("_pct") and k != "density_all_pct"}  # fmt: skip
+        return cls(
+            points_in=int(record.get("points_in", 0)),
+            kept=kept,
+            density_pct=density,
+            ring_method=record.get("ring_method"),
+            ring_fallback=record.get("ring_fallback"),
+            rings_found=record.get("rings_found"),
+            density_all_pct=record.get("density_all_pct"),
+        )
+
+
+@dataclass(frozen=True)
+class BeamsJob(BatchJob[BeamsInput]):
+    """``sparsetools beams`` (picklable): per frame, recover rings, keep every output set's
+    beams and write them (atomically).
+
+    Attributes
+    ----------
+    settings : BeamsSettings
+    plan : the rings (or pl++ bins) of every output set, fixed by :meth:`planned` before any
+        frame runs, so every frame keeps the same lasers.
+    """
+
+    command: ClassVar[str] = "beams"
+    noun: ClassVar[str] = "beams"
+    stats_type: ClassVar[type[FrameStats]] = BeamsStats
+
+    settings: BeamsSettings
+    plan: _Plan | None = None
+
+    def planned(self, frames: list[Frame]) -> BeamsJob:
+        """Fix every output set's rings; check pl++'s calibration and the first frame's
+        calibration (no size, a size that contradicts it) before anything is written."""
+        if not frames:
+            raise ParameterError("no point clouds given")
+        has_calib = any(f.calib is not None for f in frames)
+        if self.settings.mode == "pl++" and not has_calib:
+            raise ParameterError("--select pl++ needs --calib (its image-FOV pre-filter)")
+        if has_calib:
+            f0 = frames[0]
+            try:
+                _frame_calibration(self._input(f0), self.settings.image_size)
+            except ParameterError:
+                raise
+            except SparsetoolsError:  # that frame's own problem: reported by its job
+                pass
+        return replace(self, plan=plan_selection([f.cloud for f in frames], self.settings))
+
+    @staticmethod
+    def _input(f: Frame) -> BeamsInput:
+        return BeamsInput(
+            cloud=str(f.cloud),
+            calib_path=None if f.calib is None else str(f.calib),
+            image=None if f.image is None else str(f.image),
+        )
+
+    def tasks(self, frames: list[Frame], out_dir: Path) -> list[FrameTask[BeamsInput]]:
+        """One task per frame: ``OUT/<sequence>/<frame><suffix>``, or
+        ``OUT/n<N>/<sequence>/...`` per beam count when several are asked."""
+        tasks = []
+        for f in frames:
+            suffix = _output_suffix(self.settings, f.cloud)
+            outputs = {
+                (label or "cloud"): f.key.path(out_dir, suffix, prefix=label)
+                for label, _, _, _ in self.plan.items
+            }
+            sources = (
+                f.cloud,
+                *([f.calib] if f.calib else []),
+                *([f.image] if f.image and f.calib else []),
+            )
+            tasks.append(FrameTask(f.key, self._input(f), outputs, sources))
+        return tasks
+
+    def record(self) -> dict:
+        """The settings and the selection of every output set (compared like a setting)."""
+        return {**settings_dict(self.settings), **_plan_record(self.plan)}
+
+    def option_names(self) -> dict:
+        return {**option_names(self.settings), **{k: k for k in _plan_record(self.plan)}}
+
+    def __call__(self, task: FrameTask[BeamsInput]) -> BeamsStats:
         from ..io.pointcloud import write_points
 
         settings, plan, inp = self.settings, self.plan, task.inputs
         cloud = Path(inp.cloud)
-        points = read_cloud_strict(cloud)
+        points = read_points(cloud, strict=True)
         needs_rings = any(rings is not None for _, _, rings, _ in plan.items)
         calib = None
         if inp.calib_path is not None:
-            calib = _frame_calibration(inp.calib_path, inp.image, self.image_size)
-        stats: dict = {"points_in": int(points.shape[0])}
-        ring = None
+            calib = _frame_calibration(inp, settings.image_size)
+        ring = used = None
         n_lasers = _resolved(settings, cloud)[1]
         if needs_rings:
             ring, used, n_lasers = recover_cloud_rings(points, cloud, settings)
-            stats["ring_method"] = used
-            stats["ring_fallback"] = int(used != _resolved(settings, cloud)[0])
-            stats["rings_found"] = int(np.unique(ring).size)
         selections = []
         for label, n, rings, spec in plan.items:  # select everything first: errors write nothing
             if rings is not None:
@@ -453,44 +487,56 @@ class BeamsJob:
                     pl_height=settings.pl_height,
                 )
             selections.append((label or f"n{n}", sel))
+        kept, density = {}, {}
         for (key, sel), out in zip(selections, task.outputs.values(), strict=True):
             write_points(out, sel.points)
-            stats[f"kept_{key}"] = int(sel.index.size)
+            kept[key] = int(sel.index.size)
             if calib is not None:
-                stats[f"density_{key}_pct"], _ = _density_pct(sel.points, calib)
-        if calib is not None:
-            stats["density_all_pct"], _ = _density_pct(points, calib)
-        return stats
-
-
-# -- tasks and running ---------------------------------------------------------------------------
-
-
-def beams_tasks(
-    frames: list[Frame], out_dir: str | os.PathLike, settings: BeamsSettings, plan: _Plan
-) -> list[FrameTask[BeamsInput]]:
-    """One task per frame: ``OUT/<sequence>/<frame><suffix>``, or ``OUT/n<N>/<sequence>/...``
-    per beam count when several are asked."""
-    out = Path(out_dir)
-    tasks = []
-    for f in frames:
-        suffix = _output_suffix(settings, f.cloud)
-        outputs = {
-            (label or "cloud"): f.key.path(out, suffix, prefix=label)
-            for label, _, _, _ in plan.items
-        }
-        inp = BeamsInput(
-            cloud=str(f.cloud),
-            calib_path=None if f.calib is None else str(f.calib),
-            image=None if f.image is None else str(f.image),
+                density[key] = _density_pct(sel.points, calib)
+        return BeamsStats(
+            points_in=int(points.shape[0]),
+            kept=kept,
+            density_pct=density,
+            ring_method=used,
+            ring_fallback=None if used is None else int(used != _resolved(settings, cloud)[0]),
+            rings_found=None if ring is None else int(np.unique(ring).size),
+            density_all_pct=None if calib is None else _density_pct(points, calib),
         )
-        sources = (
-            f.cloud,
-            *([f.calib] if f.calib else []),
-            *([f.image] if f.image and f.calib else []),
-        )
-        tasks.append(FrameTask(f.key, inp, outputs, sources))
-    return tasks
+
+    def finish(self, summary: RunSummary, tasks: list, out_dir: Path) -> dict:
+        """Totals: select_<set>, rings_<set> / line_spec_<set>, elevations_from, ring_method,
+        fallback_frames, points_in, kept_<set>, kept_<set>_pct and, with a calibration,
+        density_<set>_pct (mean over frames) and density_all_pct; format, output."""
+        settings, plan = self.settings, self.plan
+        stats = self.stats(summary)
+        result: dict = {}
+        if plan.elevation_source:
+            result["elevations_from"] = plan.elevation_source
+        points_in = sum(st.points_in for st in stats)
+        result["points_in"] = int(points_in)
+        methods = sorted({st.ring_method for st in stats if st.ring_method is not None})
+        if methods:
+            result["ring_method"] = ",".join(methods)
+            result["fallback_frames"] = int(sum(st.ring_fallback or 0 for st in stats))
+        for (label, n, rings, spec), mode in zip(plan.items, plan.modes, strict=True):
+            key = label or f"n{n}"
+            result[f"select_{key}"] = mode
+            if rings is not None:
+                result[f"rings_{key}"] = ",".join(str(k) for k in rings)
+            else:
+                result[f"line_spec_{key}"] = ",".join(str(k) for k in spec)
+            kept = sum(st.kept.get(key, 0) for st in stats)
+            result[f"kept_{key}"] = int(kept)
+            result[f"kept_{key}_pct"] = round(100.0 * kept / points_in, 3) if points_in else 0.0
+            dens = [st.density_pct[key] for st in stats if key in st.density_pct]
+            if dens:
+                result[f"density_{key}_pct"] = round(float(np.mean(dens)), 4)
+        dens_all = [st.density_all_pct for st in stats if st.density_all_pct is not None]
+        if dens_all:
+            result["density_all_pct"] = round(float(np.mean(dens_all)), 4)
+        result["format"] = settings.fmt
+        result["output"] = str(out_dir)
+        return result
 
 
 def _plan_record(plan: _Plan) -> dict:
@@ -506,129 +552,41 @@ def _plan_record(plan: _Plan) -> dict:
     return out
 
 
-def run_beams(
-    frames: list[Frame],
-    out_dir: str | os.PathLike,
-    settings: BeamsSettings,
-    *,
-    image_size: tuple[int, int] | None = None,
-    batch: Batch | None = None,
-    inputs: list[str | os.PathLike] = (),
-) -> RunSummary:
-    """Run ``beams`` over frames (from :func:`sparsetools.io.sources.cloud_frames`).
-
-    Parameters
-    ----------
-    frames : list of Frame
-        Clouds, with a calibration (file, KITTI raw folder or per frame) and image for the
-        density report and pl++.
-    out_dir : path-like
-    settings : BeamsSettings
-    image_size : (width, height), optional
-        Map size when the calibration holds none.
-    batch : Batch, optional
-    inputs : list of path-like
-        The folders the user gave (the output may not be inside them).
-
-    Returns
-    -------
-    RunSummary
-        Totals: select_<label>, rings_<label> / line_spec_<label> per output set,
-        elevations_from, ring_method, fallback_frames, points_in, kept_<label>,
-        kept_<label>_pct and, with a calibration, density_<label>_pct (mean over frames) and
-        density_all_pct, format, output.
-    """
-    batch = batch or Batch()
-    if not frames:
-        raise ParameterError("no point clouds given")
-    has_calib = any(f.calib is not None for f in frames)
-    if settings.mode == "pl++" and not has_calib:
-        raise ParameterError("--select pl++ needs --calib (its image-FOV pre-filter)")
-    if has_calib:
-        f0 = frames[0]
-        try:
-            _frame_calibration(f0.calib, f0.image, image_size)
-        except ParameterError:
-            raise
-        except SparsetoolsError:  # that frame's own problem: reported by its job
-            pass
-    plan = plan_selection([f.cloud for f in frames], settings)
-    out = check_output_dir(out_dir, inputs)
-    tasks = beams_tasks(frames, out, settings, plan)
-    from .provenance import option_names
-
-    selected = _plan_record(plan)
-    spec = RunSpec(
-        "beams",
-        out,
-        {**_settings_with(settings, image_size), **selected},
-        noun="beams",
-        options={**option_names(settings), **{k: k for k in selected}},
-    )
-    summary = run_frames(BeamsJob(settings, plan, image_size), tasks, batch=batch, spec=spec)
-    return _with_totals(summary, settings, plan, out)
+# -- the ring table ------------------------------------------------------------------------------
 
 
-def _settings_with(settings: BeamsSettings, image_size) -> dict:
-    from .provenance import settings_dict
+@dataclass(frozen=True)
+class RingReport:
+    """The ring table of one cloud: the method that recovered its rings and per-ring
+    statistics (:class:`~sparsetools.ops.rings.RingTable`)."""
 
-    d = settings_dict(settings)
-    d["image_size"] = list(image_size) if image_size else None
-    return d
+    cloud: str
+    points: int
+    n_lasers: int
+    ring_method: str
+    table: object
 
+    def to_dict(self) -> dict:
+        return {"cloud": self.cloud, "points": self.points, "n_lasers": self.n_lasers,
+                "ring_method": self.ring_method, **self.table.as_dict()}  # fmt: skip
 
-def _with_totals(
-    summary: RunSummary, settings: BeamsSettings, plan: _Plan, out: Path
-) -> RunSummary:
-    done = summary.ok
-    result: dict = {}
-    if plan.elevation_source:
-        result["elevations_from"] = plan.elevation_source
-    points_in = summary.total("points_in")
-    result["points_in"] = int(points_in)
-    if any("ring_method" in r.stats for r in done):
-        methods = sorted({r.stats["ring_method"] for r in done if "ring_method" in r.stats})
-        result["ring_method"] = ",".join(methods)
-        result["fallback_frames"] = int(summary.total("ring_fallback"))
-    for (label, n, rings, spec), mode in zip(plan.items, plan.modes, strict=True):
-        key = label or f"n{n}"
-        result[f"select_{key}"] = mode
-        if rings is not None:
-            result[f"rings_{key}"] = ",".join(str(k) for k in rings)
-        else:
-            result[f"line_spec_{key}"] = ",".join(str(k) for k in spec)
-        kept = summary.total(f"kept_{key}")
-        result[f"kept_{key}"] = int(kept)
-        result[f"kept_{key}_pct"] = round(100.0 * kept / points_in, 3) if points_in else 0.0
-        dens = [r.stats[f"density_{key}_pct"] for r in done if f"density_{key}_pct" in r.stats]
-        if dens:
-            result[f"density_{key}_pct"] = round(float(np.mean(dens)), 4)
-    dens_all = [r.stats["density_all_pct"] for r in done if "density_all_pct" in r.stats]
-    if dens_all:
-        result["density_all_pct"] = round(float(np.mean(dens_all)), 4)
-    result["format"] = settings.fmt
-    result["output"] = str(out)
-    return summary.with_totals(result)
+    def format(self) -> str:
+        d = self.table.as_dict()
+        order = "decreasing" if d["monotonic"] else "NOT monotonic"
+        return (
+            f"{self.cloud}: {self.points} points, {d['rings']} rings ({self.ring_method}, "
+            f"{self.n_lasers} lasers), median elevation {order}\n{self.table.format()}"
+        )
 
 
-def ring_report(clouds: list[str | os.PathLike], settings: BeamsSettings) -> list[dict]:
+def ring_report(clouds: list[str | os.PathLike], settings: BeamsSettings) -> list[RingReport]:
     """Ring table of each cloud (files or folders): method used, rings, per-ring statistics."""
     from ..io.sources import cloud_frames
 
     out = []
     for f in cloud_frames(list(clouds)):
-        path = f.cloud
-        points = read_cloud_strict(path)
-        ring, used, n_lasers = recover_cloud_rings(points, path, settings)
+        points = read_points(f.cloud, strict=True)
+        ring, used, n_lasers = recover_cloud_rings(points, f.cloud, settings)
         table = ring_table(points, ring, far_range=settings.far_range)
-        out.append(
-            {
-                "cloud": str(path),
-                "points": int(points.shape[0]),
-                "n_lasers": n_lasers,
-                "ring_method": used,
-                **table.as_dict(),
-                "_table": table,
-            }
-        )
+        out.append(RingReport(str(f.cloud), int(points.shape[0]), n_lasers, used, table))
     return out

@@ -205,8 +205,9 @@ class BatchJob(Generic[I]):
     def prepare(self) -> None:
         """Load what every frame uses, once, before a pool forks (optional)."""
 
-    def before(self, out_dir: Path) -> None:
-        """Write the shared files the frames read, once the folder is checked (optional)."""
+    def before(self, out_dir: Path, batch: Batch) -> None:
+        """Once the folder is checked and before any frame runs: write the shared files the
+        frames read, or run a first stage of the command (optional)."""
 
     def __call__(self, task: FrameTask[I]) -> FrameStats:
         raise NotImplementedError
@@ -331,7 +332,9 @@ def run_frames(
     by_id = {t.frame_id: t for t in tasks}
     results: dict[str, FrameResult] = {}
     summary = RunSummary(
-        command=spec.command if spec else "", output=spec.out_dir if spec else None
+        command=spec.command if spec else "",
+        output=spec.out_dir if spec else None,
+        overwrite=batch.overwrite,
     )
     if spec is None:
         done = complete or (lambda t: bool(t.outputs) and all(p.is_file() for p in t.output_paths))
@@ -462,7 +465,7 @@ def run_job(
         spec=spec,
         complete=job.is_complete(out),
         desc=desc or job.command,
-        before=functools.partial(job.before, out),
+        before=functools.partial(job.before, out, batch),
     )
     return summary.with_totals(job.finish(summary, tasks, out))
 

@@ -21,10 +21,10 @@ Outputs, per frame with key ``<sequence>/<frame>`` (a flat input has no ``<seque
 from __future__ import annotations
 
 import logging
-import os
 import shutil
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
@@ -32,9 +32,16 @@ from ..calibration import Calibration
 from ..errors import FormatError, OutputError, ParameterError, SparsetoolsError
 from ..io.atomic import atomic_path
 from ..io.sources import Frame, FrameKey, Sweep
-from ..validate import check_choice, check_non_negative, check_positive, parse_crop
-from .batch import Batch, RunSummary
-from .core import FrameTask, RunSpec, check_output_dir, run_frames
+from ..validate import (
+    check_choice,
+    check_non_negative,
+    check_ordered,
+    check_positive,
+    parse_crop,
+    parse_size,
+)
+from .batch import RunSummary
+from .core import BatchJob, FrameStats, FrameTask
 
 __all__ = [
     "FORMATS",
@@ -42,9 +49,8 @@ __all__ = [
     "ProjectInput",
     "ProjectJob",
     "ProjectSettings",
-    "project_tasks",
+    "ProjectStats",
     "resolve_calibration",
-    "run_project",
 ]
 
 log = logging.getLogger(__name__)
@@ -89,20 +95,13 @@ class ProjectSettings:
         check_choice(self.fmt, "--format", FORMATS)
         check_non_negative(self.min_depth, "min_depth")
         check_positive(self.max_depth, "max_depth", allow_none=True)
-        if self.max_depth is not None and not self.max_depth > self.min_depth:
-            raise ParameterError(
-                f"({self.max_depth}) must be > --min-depth ({self.min_depth})", param="max_depth"
-            )
-        if self.pixel_offset not in (0, -1):
-            raise ParameterError(f"must be 0 or -1, got {self.pixel_offset}", param="pixel_offset")
+        check_ordered(self.min_depth, self.max_depth, "min_depth", "max_depth")
+        check_choice(self.pixel_offset, "pixel_offset", (0, -1))
         check_positive(self.resize, "resize", allow_none=True)
         if self.crop is not None:
             object.__setattr__(self, "crop", parse_crop(self.crop))
         if self.image_size is not None:
-            w, h = self.image_size
-            if int(w) <= 0 or int(h) <= 0:
-                raise ParameterError(f"must be positive, got {self.image_size}", param="image_size")
-            object.__setattr__(self, "image_size", (int(w), int(h)))
+            object.__setattr__(self, "image_size", parse_size(self.image_size))
 
 
 @dataclass(frozen=True)
@@ -133,38 +132,19 @@ class ProjectInput:
 
 
 def resolve_calibration(inp: ProjectInput, settings: ProjectSettings) -> Calibration:
-    """The calibration a frame's depth map uses: loaded, sized, resized, cropped.
+    """The calibration a frame's depth map uses: loaded, sized and checked against the
+    frame's image, resized, cropped (:func:`sparsetools.io.calib.frame_calibration`)."""
+    from ..io.calib import frame_calibration
 
-    Image size, first found: ``settings.image_size``, the frame's image header, the
-    calibration's own size (KITTI raw ``S_rect``, JSON ``width``/``height``, nuScenes).
-    """
-    from ..io.calib import load_calibration
-    from ..io.image import check_pixel_count, image_size_of
-
-    calib = inp.calibration
-    if calib is None:
-        if inp.calib_path is None:
-            raise ParameterError("no calibration: give --calib")
-        calib = load_calibration(inp.calib_path, camera=settings.camera)
-    if settings.image_size is not None:
-        calib = calib.for_size(*settings.image_size, given_by="--image-size")
-    elif calib.width is not None and calib.height is not None and inp.calibration is not None:
-        pass  # a size the source knows (nuScenes) wins over reading the image header
-    elif inp.image is not None:
-        calib = calib.for_size(*image_size_of(inp.image), given_by=f"image {inp.image}")
-    elif calib.width is None or calib.height is None:
-        raise ParameterError(
-            "image size missing: give --image-size WxH or --image IMG "
-            f"(calibration {calib.source or '?'} holds no size)"
-        )
-    if settings.resize is not None:
-        calib = calib.resized(settings.resize)
-    if settings.crop is not None:
-        top, left, h, w = settings.crop
-        calib = calib.cropped(top, left, h, w)
-    # A size from an option or a calibration file is not bounded by anything else.
-    check_pixel_count(calib.width, calib.height, "depth map")
-    return calib
+    return frame_calibration(
+        calib_path=inp.calib_path,
+        calibration=inp.calibration,
+        camera=settings.camera,
+        image=inp.image,
+        image_size=settings.image_size,
+        resize=settings.resize,
+        crop=settings.crop,
+    )
 
 
 # -- the per-frame job ---------------------------------------------------------------------------
@@ -219,15 +199,109 @@ def _parquet_row(frame_id: str, depth: np.ndarray, calib: Calibration):
 
 
 @dataclass(frozen=True)
-class ProjectJob:
-    """The per-frame job of ``project`` (picklable): project one frame and write its outputs.
+class ProjectStats(FrameStats):
+    """One frame's projection: points read, points inside the image (before the z-buffer),
+    valid pixels of the map, its pixel count, PNG pixels clipped at 256 m, whether the map is
+    empty (1) and why."""
 
-    Returns per frame: points_in, points_in_image (before the z-buffer), valid_pixels,
-    pixels, clipped (PNG pixels clipped at 256 m), empty (1 if the map has no valid pixel)
-    and, for an empty map, empty_reason.
+    points_in: int
+    points_in_image: int
+    valid_pixels: int
+    pixels: int
+    clipped: int
+    empty: int
+    empty_reason: str | None = None
+
+
+@dataclass(frozen=True)
+class ProjectJob(BatchJob[ProjectInput]):
+    """``sparsetools project``: point clouds to sparse depth maps (picklable).
+
+    Attributes
+    ----------
+    settings : ProjectSettings
+    calibration : Calibration, optional
+        One calibration for every frame: given, or the calibration file the frames share,
+        read once by :meth:`planned`.
     """
 
+    command: ClassVar[str] = "project"
+    noun: ClassVar[str] = "depth maps"
+    stats_type: ClassVar[type[FrameStats]] = ProjectStats
+
     settings: ProjectSettings
+    calibration: Calibration | None = None
+
+    def planned(self, frames: list[Frame]) -> ProjectJob:
+        """Read the calibration the frames share once, and check the settings on the first
+        frame (no image size, a crop that does not fit): an error every frame would have is
+        reported once, before anything is written."""
+        from ..io.calib import load_calibration
+
+        if not frames:
+            raise ParameterError("no frames to project")
+        camera = self.settings.camera
+        if isinstance(camera, str):
+            kitti = sorted(str(f.calib) for f in frames
+                           if f.calib is not None and f.calib.suffix.lower() != ".json")  # fmt: skip
+            if kitti:
+                raise ParameterError(
+                    f"{camera!r} is a name, which only JSON calibrations use; {kitti[0]} is a "
+                    "KITTI calibration: give an index 0-3",
+                    param="camera",
+                )
+        job = self
+        paths = {f.calib for f in frames if f.calibration is None}
+        if self.calibration is None and paths:
+            if None in paths:
+                raise ParameterError("no calibration: give --calib")
+            if len(paths) == 1 and len(frames) > 1:
+                job = replace(self, calibration=load_calibration(next(iter(paths)), camera=camera))
+        try:
+            resolve_calibration(job._input(frames[0]), self.settings)
+        except ParameterError:
+            raise
+        except SparsetoolsError:  # that frame's own problem: its job reports it
+            pass
+        return job
+
+    def _input(self, f: Frame) -> ProjectInput:
+        calib = f.calibration if f.calibration is not None else self.calibration
+        return ProjectInput(
+            cloud=str(f.cloud),
+            sweeps=f.sweeps,
+            calib_path=None if calib is not None or f.calib is None else str(f.calib),
+            calibration=calib,
+            image=None if f.image is None else str(f.image),
+        )
+
+    def tasks(self, frames: list[Frame], out_dir: Path) -> list[FrameTask[ProjectInput]]:
+        """One task per frame: the map ``OUT/<sequence>/<frame>.<fmt>`` (a part of the table
+        for parquet) and its calibration ``OUT/calib/<sequence>/<frame>.json``."""
+        s = self.settings
+        tasks = []
+        for f in frames:
+            image_source = () if (s.image_size is not None or f.image is None) else (f.image,)
+            sources = (f.cloud, *(sw.path for sw in f.sweeps), *([f.calib] if f.calib else []),
+                       *image_source, *f.extra_inputs)  # fmt: skip
+            tasks.append(FrameTask(f.key, self._input(f), _outputs(out_dir, f.key, s.fmt),
+                                   tuple(sources)))  # fmt: skip
+        return tasks
+
+    def shared_outputs(self, out_dir: Path) -> tuple[Path, ...]:
+        return (out_dir / PARQUET_NAME,) if self.settings.fmt == "parquet" else ()
+
+    def is_complete(self, out_dir: Path):
+        if self.settings.fmt != "parquet":
+            return None
+        target = out_dir / PARQUET_NAME
+
+        def complete(t):  # a merged frame: its part is gone, the table holds it
+            return t.outputs["calib"].is_file() and (
+                t.outputs["depth"].is_file() or target.is_file()
+            )
+
+        return complete
 
     def prepare(self) -> None:
         """Load the libraries every frame uses (OpenCV's PNG codec, the calibration writer):
@@ -237,7 +311,7 @@ class ProjectJob:
 
         encode_depth_png(np.zeros((2, 2), np.float32))
 
-    def __call__(self, task: FrameTask[ProjectInput]) -> dict:
+    def __call__(self, task: FrameTask[ProjectInput]) -> ProjectStats:
         from ..io.calib import write_json_calib
         from ..io.image import write_depth_png
         from ..ops.projection import project_points
@@ -280,14 +354,7 @@ class ProjectJob:
             calibration=calib.source,
         )
         valid = int(np.count_nonzero(depth))
-        stats = {
-            "points_in": int(points.shape[0]),
-            "points_in_image": int(n_in_image),
-            "valid_pixels": valid,
-            "pixels": int(depth.size),
-            "clipped": int(clipped),
-            "empty": int(valid == 0),
-        }
+        reason = None
         if valid == 0:
             if points.shape[0] == 0:
                 reason = "the cloud has no points"
@@ -296,12 +363,57 @@ class ProjectJob:
                     f"none of its {points.shape[0]} points is in front of the camera "
                     f"(depth > {s.min_depth} m) and inside the image"
                 )
-            stats["empty_reason"] = reason
             log.warning("frame %s: empty depth map written: %s", task.frame_id, reason)
-        return stats
+        return ProjectStats(
+            points_in=int(points.shape[0]),
+            points_in_image=int(n_in_image),
+            valid_pixels=valid,
+            pixels=int(depth.size),
+            clipped=int(clipped),
+            empty=int(valid == 0),
+            empty_reason=reason,
+        )
+
+    def finish(self, summary: RunSummary, tasks: list[FrameTask], out_dir: Path) -> dict:
+        """Merge the parquet parts (``--format parquet``); the totals: points_in,
+        points_in_image, valid_pixels, density_pct (valid pixels / pixels of the frames),
+        clipped, empty_maps, format, output, frames_per_s."""
+        if self.settings.fmt == "parquet":
+            target = out_dir / PARQUET_NAME
+            try:
+                _write_parquet(out_dir, tasks, keep_old=not summary.overwrite)
+            except OutputError:
+                raise
+            except Exception as exc:  # pyarrow: a schema clash with an older table, I/O
+                raise OutputError(
+                    f"cannot merge the frames into {target} ({_first_line(exc)}); the per-frame "
+                    f"parts are kept in {out_dir / PARTS_DIR}: rerun with --overwrite to "
+                    "rebuild the table"
+                ) from exc
+        stats = self.stats(summary)
+        pixels = sum(st.pixels for st in stats)
+        valid = sum(st.valid_pixels for st in stats)
+        empty = [(r, st) for r, st in zip(summary.ok, stats, strict=True) if st.empty]
+        if empty:
+            shown = ", ".join(f"{r.frame_id} ({st.empty_reason or ''})" for r, st in empty[:3])
+            more = f" and {len(empty) - 3} more" if len(empty) > 3 else ""
+            log.warning("%d empty depth map(s): %s%s", len(empty), shown, more)
+        seconds = summary.seconds
+        return {
+            "points_in": sum(st.points_in for st in stats),
+            "points_in_image": sum(st.points_in_image for st in stats),
+            "valid_pixels": int(valid),
+            "density_pct": round(100.0 * valid / pixels, 4) if pixels else 0.0,
+            "clipped": sum(st.clipped for st in stats),
+            "empty_maps": len(empty),
+            "format": self.settings.fmt,
+            "output": str(out_dir / PARQUET_NAME) if self.settings.fmt == "parquet"
+            else str(out_dir),
+            "frames_per_s": round(len(summary.done) / seconds, 2) if seconds > 0 else 0.0,
+        }  # fmt: skip
 
 
-# -- task building -------------------------------------------------------------------------------
+# -- outputs and the parquet table ---------------------------------------------------------------
 
 
 def _outputs(out_dir: Path, key: FrameKey, fmt: str) -> dict[str, Path]:
@@ -310,71 +422,6 @@ def _outputs(out_dir: Path, key: FrameKey, fmt: str) -> dict[str, Path]:
     else:
         depth = key.path(out_dir, f".{fmt}")
     return {"depth": depth, "calib": key.path(out_dir, ".json", prefix="calib")}
-
-
-def project_tasks(
-    frames: list[Frame],
-    out_dir: str | os.PathLike,
-    settings: ProjectSettings,
-    *,
-    calibration: Calibration | None = None,
-) -> list[FrameTask[ProjectInput]]:
-    """One task per frame.
-
-    Parameters
-    ----------
-    frames : list of Frame
-        With ``cloud`` and a calibration (``calib`` path or ``calibration``).
-    out_dir : path-like
-    settings : ProjectSettings
-    calibration : Calibration, optional
-        Used for every frame (instead of the frames' calibrations).
-
-    A calibration path shared by every frame is read once, here, so a bad calibration file
-    is reported before the batch starts.
-    """
-    from ..io.calib import load_calibration
-
-    if not frames:
-        raise ParameterError("no frames to project")
-    out = Path(out_dir)
-    if isinstance(settings.camera, str):
-        kitti = sorted(
-            str(f.calib)
-            for f in frames
-            if f.calib is not None and f.calib.suffix.lower() != ".json"
-        )
-        if kitti:
-            raise ParameterError(
-                f"{settings.camera!r} is a name, which only JSON calibrations use; "
-                f"{kitti[0]} is a KITTI calibration: give an index 0-3",
-                param="camera",
-            )
-    shared = calibration
-    paths = {f.calib for f in frames if f.calibration is None}
-    if shared is None and paths:
-        if None in paths:
-            raise ParameterError("no calibration: give --calib")
-        if len(paths) == 1 and len(frames) > 1:
-            shared = load_calibration(next(iter(paths)), camera=settings.camera)
-    tasks = []
-    for f in frames:
-        calib = f.calibration if f.calibration is not None else shared
-        inp = ProjectInput(
-            cloud=str(f.cloud),
-            sweeps=f.sweeps,
-            calib_path=None if calib is not None or f.calib is None else str(f.calib),
-            calibration=calib,
-            image=None if f.image is None else str(f.image),
-        )
-        image_source = () if (settings.image_size is not None or f.image is None) else (f.image,)
-        sources = (f.cloud, *(s.path for s in f.sweeps), *([f.calib] if f.calib else []),
-                   *image_source, *f.extra_inputs)  # fmt: skip
-        tasks.append(FrameTask(f.key, inp, _outputs(out, f.key, settings.fmt), tuple(sources)))
-    return tasks
-
-
-# -- parquet table -------------------------------------------------------------------------------
 
 
 def _first_line(exc: Exception) -> str:
@@ -446,96 +493,3 @@ def _write_parquet(out_dir: Path, tasks: list[FrameTask], keep_old: bool) -> int
         if not any(parts_dir.iterdir()):
             shutil.rmtree(parts_dir, ignore_errors=True)
     return len(sources)
-
-
-# -- running -------------------------------------------------------------------------------------
-
-
-def run_project(
-    tasks: list[FrameTask[ProjectInput]],
-    out_dir: str | os.PathLike,
-    settings: ProjectSettings,
-    *,
-    batch: Batch | None = None,
-    inputs: list[str | os.PathLike] = (),
-) -> RunSummary:
-    """Run projection tasks (from :func:`project_tasks`).
-
-    Parameters
-    ----------
-    tasks : list of FrameTask
-    out_dir : path-like
-        Output folder (created). Refused when it is a file, not writable, inside one of
-        ``inputs`` (folders), or when an output would replace an input file.
-    settings : ProjectSettings
-    batch : Batch, optional
-    inputs : list of path-like
-        Input folders given by the user.
-
-    Returns
-    -------
-    RunSummary
-        Totals: points_in, points_in_image, valid_pixels, density_pct (valid pixels / pixels
-        of the frames processed), clipped, empty_maps, format, output, frames_per_s.
-    """
-    batch = batch or Batch()
-    if not tasks:
-        raise ParameterError("no frames to project")
-    out = check_output_dir(out_dir, inputs)
-    # Settings errors (no image size, a crop that does not fit) would fail every frame:
-    # report them once, before anything is written.
-    try:
-        resolve_calibration(tasks[0].inputs, settings)
-    except ParameterError:
-        raise
-    except SparsetoolsError:  # that frame's own problem: its job reports it
-        pass
-    target = out / PARQUET_NAME
-    parquet = settings.fmt == "parquet"
-    complete = None
-    if parquet:
-
-        def complete(t, _target=target):  # a merged frame: its part is gone, the table holds it
-            return t.outputs["calib"].is_file() and (
-                t.outputs["depth"].is_file() or _target.is_file()
-            )
-
-    spec = RunSpec(
-        "project", out, settings, noun="depth maps", shared_outputs=(target,) if parquet else ()
-    )
-    summary = run_frames(ProjectJob(settings), tasks, batch=batch, spec=spec, complete=complete)
-    if parquet:
-        try:
-            _write_parquet(out, tasks, keep_old=not batch.overwrite)
-        except OutputError:
-            raise
-        except Exception as exc:  # pyarrow: a schema clash with an older sparse.parquet, I/O
-            raise OutputError(
-                f"cannot merge the frames into {target} ({_first_line(exc)}); the per-frame "
-                f"parts are kept in {out / PARTS_DIR}: rerun with --overwrite to rebuild the table"
-            ) from exc
-    return _with_totals(summary, settings, out)
-
-
-def _with_totals(summary: RunSummary, settings: ProjectSettings, out: Path) -> RunSummary:
-    pixels = summary.total("pixels")
-    valid = summary.total("valid_pixels")
-    empty = [r for r in summary.ok if r.stats.get("empty")]
-    if empty:
-        shown = ", ".join(f"{r.frame_id} ({r.stats.get('empty_reason', '')})" for r in empty[:3])
-        more = f" and {len(empty) - 3} more" if len(empty) > 3 else ""
-        log.warning("%d empty depth map(s): %s%s", len(empty), shown, more)
-    seconds = summary.seconds
-    return summary.with_totals(
-        {
-            "points_in": int(summary.total("points_in")),
-            "points_in_image": int(summary.total("points_in_image")),
-            "valid_pixels": int(valid),
-            "density_pct": round(100.0 * valid / pixels, 4) if pixels else 0.0,
-            "clipped": int(summary.total("clipped")),
-            "empty_maps": len(empty),
-            "format": settings.fmt,
-            "output": str(out / PARQUET_NAME) if settings.fmt == "parquet" else str(out),
-            "frames_per_s": round(len(summary.done) / seconds, 2) if seconds > 0 else 0.0,
-        }
-    )

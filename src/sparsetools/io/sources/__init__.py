@@ -10,7 +10,11 @@ Every batch command enumerates its inputs here, as :class:`Frame` records keyed 
   KITTI object split, a KITTI depth-completion tree, a ``val_selection_cropped`` folder, a
   ``synth-scene --video`` folder (with its poses);
 - :func:`cloud_frames` builds the frames of point-cloud commands (``project``, ``beams``)
-  from clouds plus an optional calibration and image (shared, or per frame by key);
+  from clouds plus an optional calibration and image (shared, or per frame by key), and
+  :func:`cloud_source` the frames of exactly one source (clouds, KITTI raw, KITTI object,
+  nuScenes) with their calibration;
+- :func:`image_frames` / :func:`images_with_depth` the frames of image commands,
+  :func:`depth_frames` of depth-map commands, :func:`radar_frames` of ``jbf-expand``;
 - :func:`nuscenes_frames` builds frames from nuScenes tables;
 - :func:`match_keys` matches the files of another input to frames by key.
 
@@ -20,22 +24,17 @@ Nothing here reads a cloud or an image, so a bad frame fails in its own job (and
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
-from ...errors import FormatError, ParameterError
+from .clouds import CloudSource, cloud_frames, cloud_source
+from .depth import RADAR_SUFFIXES, depth_frames, radar_frames
 from .frame import Frame, FrameKey, Sweep, check_key_part
+from .images import image_frames, images_with_depth
+from .index import ROLES, attach, index_input, is_shared_calibration, merge_frames
 from .kitti import (
-    is_kitti_depth_completion,
-    is_kitti_object,
     is_kitti_raw,
     is_kitti_raw_calib_dir,
-    is_kitti_val_selection,
-    kitti_depth_completion_index,
     kitti_object_index,
     kitti_raw_drives,
     kitti_raw_index,
-    kitti_val_selection_index,
 )
 from .nuscenes import nuscenes_frames
 from .tree import (
@@ -48,14 +47,15 @@ from .tree import (
     index_tree,
     match_keys,
 )
-from .video import VIDEO_ROLES, is_video_folder, video_index
 
 __all__ = [
     "CALIB_SUFFIXES",
     "CLOUD_SUFFIXES",
     "DEPTH_SUFFIXES",
     "IMAGE_SUFFIXES",
+    "RADAR_SUFFIXES",
     "ROLES",
+    "CloudSource",
     "FileIndex",
     "Frame",
     "FrameKey",
@@ -63,8 +63,13 @@ __all__ = [
     "attach",
     "check_key_part",
     "cloud_frames",
+    "cloud_source",
+    "depth_frames",
     "file_stem",
+    "image_frames",
+    "images_with_depth",
     "index_input",
+    "index_tree",
     "is_kitti_raw",
     "is_kitti_raw_calib_dir",
     "is_shared_calibration",
@@ -74,198 +79,5 @@ __all__ = [
     "match_keys",
     "merge_frames",
     "nuscenes_frames",
+    "radar_frames",
 ]
-
-#: Role of an input -> (file suffixes, the role its files have in a sparsetools output folder).
-ROLES = {
-    "cloud": (CLOUD_SUFFIXES, "cloud"),
-    "image": (IMAGE_SUFFIXES, "image"),
-    "sparse": (DEPTH_SUFFIXES, "depth"),
-    "gt": (DEPTH_SUFFIXES, "depth"),
-    "depth": (DEPTH_SUFFIXES, "depth"),
-    "confidence": (DEPTH_SUFFIXES, "confidence"),
-    "calib": (CALIB_SUFFIXES, "calib"),
-}
-
-
-def index_input(
-    path: str | os.PathLike,
-    role: str,
-    *,
-    option: str,
-    camera: int = 2,
-    name: str | None = None,
-) -> FileIndex:
-    """The files of one input path for ``role``, keyed by frame.
-
-    Parameters
-    ----------
-    path : path-like
-        A file or a folder (any layout of the module docstring).
-    role : {"cloud", "image", "sparse", "gt", "depth", "confidence", "calib"}
-    option : str
-        The option the path came from, for messages.
-    camera : int
-        KITTI camera index (``image_02``, ``proj_depth/*/image_02``).
-    name : str, optional
-        KITTI depth-completion map set (``velodyne_raw``, ``groundtruth``, ...).
-
-    Raises
-    ------
-    FormatError
-        Missing path, no files, or two files that are one frame.
-    """
-    if role not in ROLES:
-        raise ParameterError(f"unknown input role {role!r}")
-    suffixes, recorded_role = ROLES[role]
-    p = Path(path)
-    if p.is_dir():
-        if is_video_folder(p) and role in VIDEO_ROLES:
-            return video_index(p, role, option=option)
-        if role in ("cloud", "image") and is_kitti_raw(p):
-            return kitti_raw_index(p, what=role, camera=camera, option=option)
-        if role in ("sparse", "gt", "depth", "confidence") and is_kitti_depth_completion(p):
-            dc_role = role if role in ("sparse", "gt") else "sparse"
-            return kitti_depth_completion_index(
-                p, role=dc_role, name=name, camera=camera, option=option
-            )
-        if is_kitti_val_selection(p) and role in ("image", "sparse", "gt", "calib"):
-            return kitti_val_selection_index(p, role=role, camera=camera, option=option)
-        if role == "cloud" and is_kitti_object(p):
-            return kitti_object_index(p, camera=camera)
-        if role == "image" and is_kitti_object(p):
-            base = p / "training" if (p / "training").is_dir() else p
-            return index_tree(base / f"image_{camera}", suffixes, option=option)
-        if role == "calib" and is_kitti_raw_calib_dir(p):
-            raise ParameterError(
-                f"{option}: {p} is one KITTI raw calibration, not a folder of files"
-            )
-    return index_tree(p, suffixes, option=option, role=recorded_role)
-
-
-def is_shared_calibration(path: str | os.PathLike) -> bool:
-    """A calibration shared by every frame: one file, or a KITTI raw calibration folder."""
-    p = Path(path)
-    return p.is_file() or is_kitti_raw_calib_dir(p)
-
-
-def attach(
-    frames: list[Frame],
-    path: str | os.PathLike | None,
-    field: str,
-    *,
-    role: str,
-    option: str,
-    shared_ok: bool = True,
-    camera: int = 2,
-    name: str | None = None,
-) -> tuple[list[Frame], int]:
-    """Give every frame its file of another input (``field``: ``image``, ``calib``, ``depth``).
-
-    A single file (or a KITTI raw calibration folder for ``calib``) is shared by every frame
-    when ``shared_ok``; a folder is indexed and matched by key. A frame without a match gets
-    the path its file would have (``DIR/<sequence>/<frame>.<first suffix>``) so it fails in its
-    own job, and is counted.
-
-    Returns
-    -------
-    frames : list of Frame
-    unmatched : int
-    """
-    from dataclasses import replace
-
-    if path is None:
-        return frames, 0
-    p = Path(path)
-    if not p.exists():
-        raise FormatError(f"{option}: {p}: no such file or folder")
-    if (p.is_file() or (field == "calib" and is_kitti_raw_calib_dir(p))) and (
-        shared_ok or len(frames) == 1
-    ):
-        return [replace(f, **{field: p}) for f in frames], 0
-    if p.is_file():
-        raise ParameterError(
-            f"{option}: {p} is one file but {len(frames)} frames were given: pass a folder of "
-            "files matched by frame"
-        )
-    index = index_input(p, role, option=option, camera=camera, name=name)
-    found = match_keys([f.key for f in frames], index.files)
-    suffix = ROLES[role][0][0]
-    out = []
-    for f in frames:
-        out.append(replace(f, **{field: found.get(f.key) or f.key.path(p, suffix)}))
-    return out, len(frames) - len(found)
-
-
-def merge_frames(indexes, field: str) -> list[Frame]:
-    """Frames of several indexed inputs, each file in ``Frame.<field>``, sorted by key.
-
-    Parameters
-    ----------
-    indexes : iterable of FileIndex
-        One index per given path (see :func:`index_input`).
-    field : str
-        The :class:`Frame` field the files go in (``"image"``, ``"depth"``, ...).
-
-    Raises
-    ------
-    FormatError
-        Two inputs hold the same frame.
-    """
-    frames: dict[FrameKey, Frame] = {}
-    for index in indexes:
-        for key, f in index.files.items():
-            if key in frames:
-                raise FormatError(
-                    f"{getattr(frames[key], field)} and {f} are the same frame '{key}'"
-                )
-            frames[key] = Frame(key=key, **{field: f})
-    return [frames[k] for k in sorted(frames)]
-
-
-def cloud_frames(
-    paths: list[str | os.PathLike],
-    *,
-    calib: str | os.PathLike | None = None,
-    image: str | os.PathLike | None = None,
-    camera: int = 2,
-    option: str = "CLOUD",
-) -> list[Frame]:
-    """Frames of point-cloud inputs (files, folders, KITTI raw / object trees), sorted by key.
-
-    The layout's own calibration and image (KITTI raw date folder, KITTI object
-    ``calib/``, ``image_2/``) come with the frames; ``calib`` and ``image`` replace them:
-    one file or KITTI raw folder shared by every frame, or a folder matched by frame key.
-
-    Raises
-    ------
-    FormatError
-        Missing paths, no clouds, or two inputs that are the same frame.
-    """
-    from dataclasses import replace
-
-    if not paths:
-        raise ParameterError("no point clouds given")
-    frames: dict[FrameKey, Frame] = {}
-    for path in paths:
-        index = index_input(path, "cloud", option=option, camera=camera)
-        for key, cloud in index.files.items():
-            if key in frames:
-                raise FormatError(
-                    f"{frames[key].cloud} and {cloud} are the same frame '{key}': give each "
-                    "once, or folders whose frames differ"
-                )
-            frames[key] = Frame(
-                key=key,
-                cloud=cloud,
-                calib=index.calib.get(key),
-                image=index.images.get(key),
-                split=index.splits.get(key),
-            )
-    out = [frames[k] for k in sorted(frames)]
-    if calib is not None:
-        out, _ = attach(out, calib, "calib", role="calib", option="--calib", camera=camera)
-    if image is not None:
-        out, _ = attach(out, image, "image", role="image", option="--image", camera=camera)
-        # an image given explicitly gives the size, not the layout's image of another camera
-    return [replace(f) for f in out]

@@ -104,7 +104,10 @@ class Frame:
     image : Path, optional
         Camera image (also what gives a depth map its size).
     depth : Path, optional
-        A depth-like map of the frame (sparse LiDAR/radar depth, ground truth).
+        A depth-like map of the frame (sparse LiDAR/radar depth, a dense depth map).
+    gt : Path, optional
+        A reference depth map of the frame (ground truth, the LiDAR map radar is compared
+        with).
     calib : Path, optional
         Calibration file, or a KITTI raw date folder holding the calibration pair.
     calibration : Calibration, optional
@@ -124,6 +127,7 @@ class Frame:
     sweeps: tuple[Sweep, ...] = ()
     image: Path | None = None
     depth: Path | None = None
+    gt: Path | None = None
     calib: Path | None = None
     calibration: object | None = field(default=None, compare=False, repr=False)
     pose: tuple[float, ...] | None = field(default=None, compare=False, repr=False)
@@ -137,7 +141,9 @@ class Frame:
 
     def files(self) -> tuple[Path, ...]:
         """Every input file of the frame (for resume identity and input-vs-output checks)."""
-        out = [p for p in (self.cloud, self.image, self.depth, self.calib) if p is not None]
+        out = [
+            p for p in (self.cloud, self.image, self.depth, self.gt, self.calib) if p is not None
+        ]
         out.extend(s.path for s in self.sweeps)
         out.extend(self.extra_inputs)
         return tuple(out)
