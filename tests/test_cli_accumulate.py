@@ -101,7 +101,7 @@ def library_map(scans, poses, calib, t, k, settings=None, mask=None):
 
 def test_exact_poses_give_the_library_map_and_windows_stay_in_their_sequence(video, tmp_path):
     out = tmp_path / "acc"
-    s = summary_of(run("accumulate", video, "-o", out, "--window", 2, "--json"))
+    s = summary_of(run("accumulate", video, "-o", out, "--neighbours", 2, "--json"))
     assert s["frames"] == s["processed"] == 2 * N_FRAMES and s["failed"] == 0
     assert s["pose_source"] == "synthetic-video" and s["window"] == 2
     # frames 0, 1, 3, 4 of each sequence have clipped windows, and say so
@@ -133,7 +133,7 @@ def test_exact_poses_give_the_library_map_and_windows_stay_in_their_sequence(vid
 def test_camera_poses_file_matches_the_velodyne_poses(video, tmp_path):
     """KITTI odometry style camera poses, converted with Tr_velo_to_cam, give the same maps."""
     seq = video / "seq_0000"
-    args = [seq / "velodyne", "--calib", seq / "calib", "--image", seq / "image_2", "--window", 1]
+    args = [seq / "velodyne", "--calib", seq / "calib", "--image", seq / "image_2", "--neighbours", 1]
     a = summary_of(run("accumulate", *args, "--poses", seq / "poses.txt", "-o", tmp_path / "cam",
                        "--json"))  # fmt: skip
     b = summary_of(run("accumulate", *args, "--poses", seq / "poses_velodyne.txt", "-o",
@@ -169,7 +169,7 @@ def test_mask_drops_the_other_scans_points(video, tmp_path):
         cv2.imwrite(str(masks / f"{i:010d}.png"), mask.astype(np.uint8) * 255)
     s = summary_of(run("accumulate", seq / "velodyne", "--calib", seq / "calib", "--image",
                        seq / "image_2", "--poses", seq / "poses_velodyne.txt", "--mask", masks,
-                       "--window", 1, "-o", tmp_path / "acc", "--json"))  # fmt: skip
+                       "--neighbours", 1, "-o", tmp_path / "acc", "--json"))  # fmt: skip
     names, scans, poses, calib = sequence(video, "seq_0000")
     for t, name in enumerate(names):
         res = library_map(scans, poses, calib, t, 1, mask=mask)
@@ -235,7 +235,7 @@ def test_kitti_raw_oxts_poses(video, tmp_path):
         )
         packet = oxts_of(T_enu @ T @ T_velo_from_imu, lat0)
         (drive / "oxts" / "data" / f"{name}.txt").write_text(" ".join(map(repr, packet)) + "\n")
-    s = summary_of(run("accumulate", drive, "-o", tmp_path / "acc", "--window", 2, "--json"))
+    s = summary_of(run("accumulate", drive, "-o", tmp_path / "acc", "--neighbours", 2, "--json"))
     assert s["pose_source"] == "kitti-oxts" and s["frames"] == N_FRAMES
     for t, name in enumerate(names):
         expected = kitti_png(library_map(scans, poses, calib, t, 2).depth)
@@ -245,7 +245,7 @@ def test_kitti_raw_oxts_poses(video, tmp_path):
     # packet 0 (the Mercator scale and origin) of every frame
     p3 = drive / "oxts" / "data" / f"{names[3]}.txt"
     p3.write_text(p3.read_text().replace(" 4 11 6 6 6", " 4 12 6 6 6"))
-    again = summary_of(run("accumulate", drive, "-o", tmp_path / "acc", "--window", 2, "--json"))
+    again = summary_of(run("accumulate", drive, "-o", tmp_path / "acc", "--neighbours", 2, "--json"))
     assert again["recomputed"] == 4 and again["skipped_existing"] == 1
 
 
@@ -322,7 +322,7 @@ def test_nuscenes_ego_poses_in_time_order(video, tmp_path):
     for name, rows in (("sample", samples), ("sample_data", sds), ("ego_pose", eps),
                        ("calibrated_sensor", cs), ("sensor", sensors)):  # fmt: skip
         (root / "v1.0-mini" / f"{name}.json").write_text(json.dumps(rows))
-    s = summary_of(run("accumulate", root, "-o", tmp_path / "acc", "--window", 1, "--json"))
+    s = summary_of(run("accumulate", root, "-o", tmp_path / "acc", "--neighbours", 1, "--json"))
     assert s["pose_source"] == "nuscenes" and s["frames"] == N_FRAMES
     for t, tok in enumerate(tokens):
         expected = kitti_png(library_map(scans, poses, calib, t, 1).depth)
@@ -339,7 +339,7 @@ def test_resume_changing_one_scan_recomputes_its_windows(video, tmp_path):
     data = tmp_path / "video"
     shutil.copytree(video / "seq_0000", data / "seq_0000")
     out = tmp_path / "acc"
-    args = ["accumulate", data / "seq_0000", "-o", out, "--window", 1, "--json"]
+    args = ["accumulate", data / "seq_0000", "-o", out, "--neighbours", 1, "--json"]
     first = summary_of(run(*args))
     assert first["processed"] == N_FRAMES
     again = summary_of(run(*args))
@@ -365,7 +365,7 @@ def test_resume_changing_one_scan_recomputes_its_windows(video, tmp_path):
 
 
 def test_two_workers_write_the_same_bytes(video, tmp_path):
-    base = ["accumulate", video, "--window", 1]
+    base = ["accumulate", video, "--neighbours", 1]
     assert run(*base, "-o", tmp_path / "a", "--workers", 1).exit_code == 0
     assert run(*base, "-o", tmp_path / "b", "--workers", 2).exit_code == 0
     a, b = digest(tmp_path / "a"), digest(tmp_path / "b")
@@ -408,10 +408,10 @@ def test_missing_calibration(video, tmp_path):
 
 def test_window_larger_than_the_sequence_is_clipped_and_said(video, tmp_path):
     seq = video / "seq_0001"
-    args = ["accumulate", seq, "-o", tmp_path / "acc", "--window", 50, "--json"]
+    args = ["accumulate", seq, "-o", tmp_path / "acc", "--neighbours", 50, "--json"]
     r = CliRunner().invoke(cli, [str(a) for a in args])  # not quiet: the warning is the point
     s = summary_of(r)
-    assert "fewer than the 101 of --window 50" in r.stderr
+    assert "fewer than the 101 of --neighbours 50" in r.stderr
     assert s["clipped_windows"] == N_FRAMES
     assert set(s["clipped_window_frames"].values()) == {"0000000000..0000000004"}
     names, scans, poses, calib = sequence(video, "seq_0001")
@@ -426,7 +426,8 @@ def test_window_larger_than_the_sequence_is_clipped_and_said(video, tmp_path):
         (["--icp", "--poses", "POSES"], 2, "give --poses or --icp, not both"),
         (["--icp-min-range", "20"], 2, "--icp-min-range goes with --icp"),
         (["--poses-frame", "camera"], 2, "--poses-frame goes with --poses"),
-        (["--window", "-1"], 2, "--window"),
+        (["--neighbours", "-1"], 2, "--neighbours"),
+        (["--window", "-1"], 2, "--neighbours"),
         (["--min-radius-px", "5", "--max-radius-px", "2"], 2, "--max-radius-px"),
         (["--footprint-m", "0"], 2, "--footprint-m"),
     ],
@@ -440,7 +441,7 @@ def test_usage_errors(video, tmp_path, extra, code, match):
 
 def test_settings_record_every_accumulate_field(video, tmp_path):
     out = tmp_path / "acc"
-    assert run("accumulate", video / "seq_0000", "-o", out, "--window", 0).exit_code == 0
+    assert run("accumulate", video / "seq_0000", "-o", out, "--neighbours", 0).exit_code == 0
     record = json.loads((out / ".sparsetools" / "run.json").read_text())["settings"]
     fields = AccumulateSettings.__dataclass_fields__
     assert set(fields) <= set(record) and record["window"] == 0
@@ -462,7 +463,7 @@ def test_icp_on_three_real_kitti_frames(real_dir, tmp_path):
     scans = [drive / "velodyne_points" / "data" / f"{i:010d}.bin" for i in range(3)]
     out = tmp_path / "acc"
     s = summary_of(run("accumulate", *scans, "--calib", drive, "--icp", "--icp-min-range", 20,
-                       "--window", 1, "-o", out, "--json"))  # fmt: skip
+                       "--neighbours", 1, "-o", out, "--json"))  # fmt: skip
     assert s["pose_source"] == "icp" and s["frames"] == 3
     icp = s["icp"]
     assert icp["pairs"] == icp["computed"] == 2 and icp["failed"] == 0
@@ -485,6 +486,6 @@ def test_icp_on_three_real_kitti_frames(real_dir, tmp_path):
     single = np.count_nonzero(project_points(points[1], calib))
     assert np.count_nonzero(got) > 1.8 * single  # measured: 2.2x with 3 scans
     again = summary_of(run("accumulate", *scans, "--calib", drive, "--icp", "--icp-min-range", 20,
-                           "--window", 1, "-o", out, "--json"))  # fmt: skip
+                           "--neighbours", 1, "-o", out, "--json"))  # fmt: skip
     assert again["skipped_existing"] == 3 and again["icp"]["computed"] == 0
     assert again["icp"]["per_pair"] == icp["per_pair"]

@@ -82,7 +82,7 @@ def images(tmp_path_factory):
 
 def test_outputs_equal_the_library_and_a_per_pixel_reference(images, tmp_path):
     out = tmp_path / "dc"
-    r = run("dark-channel", images, "-o", out, "--window", "5", "--json")
+    r = run("dark-channel", images, "-o", out, "--patch-size", "5", "--json")
     assert r.exit_code == 0, r.output
     summary = json.loads(r.stdout)
     assert summary["frames"] == 4 and summary["processed"] == 4
@@ -170,8 +170,8 @@ def test_resume_and_settings(images, tmp_path):
     s = json.loads(run(*args).stdout)
     assert s["processed"] == 1 and s["skipped_existing"] == 3
     assert _hashes(out) == before
-    line = _one_error_line(run(*args, "--window", "7"))
-    assert "dark-channel maps made with --window 15, not 7: use --overwrite" in line
+    line = _one_error_line(run(*args, "--patch-size", "7"))
+    assert "dark-channel maps made with --patch-size 15, not 7: use --overwrite" in line
     line = _one_error_line(run(*args, "--mask-threshold", "0.1"))
     assert "made with --mask-threshold 0.05, not 0.1" in line
     line = _one_error_line(run(*args, "--save-pictures"))
@@ -181,7 +181,8 @@ def test_resume_and_settings(images, tmp_path):
 
 def test_bad_input(images, tmp_path):
     out = tmp_path / "out"
-    for opt, text in ((["--window", "4"], "odd"), (["--window", "0"], "x>=1"),
+    for opt, text in ((["--patch-size", "4"], "odd"), (["--patch-size", "0"], ">= 1"),
+                      (["--window", "4"], "odd"),
                       (["--mask-threshold", "-1"], ">= 0"), (["--mask-mode", "all"], "all"),
                       (["--lddcv-format", "tif"], "tif")):  # fmt: skip
         r = run("dark-channel", images, "-o", out, *opt)

@@ -81,7 +81,7 @@ SETTINGS = [
     (["--variant", "bilateral", "--no-extrapolate"],
      DensifySettings(variant="bilateral", extrapolate=False)),
     (["--multiscale"], DensifySettings(multiscale=True)),
-    (["--multiscale", "--variant", "bilateral", "--max-depth", "60"],
+    (["--multiscale", "--variant", "bilateral", "--inversion-offset", "60"],
      DensifySettings(multiscale=True, variant="bilateral", max_depth=60.0)),
     (["--method", "nearest"], DensifySettings(method="nearest")),
     (["--method", "linear", "--outside", "zero"], DensifySettings(method="linear", outside="zero")),
@@ -202,7 +202,8 @@ def test_8_bit_png_is_refused(tmp_path):
 @pytest.mark.parametrize(
     "args, code, match",
     [
-        (["--max-depth", "0.1"], 1, "--max-depth: must be > 0.2 m"),
+        (["--inversion-offset", "0.1"], 1, "must be > 0.2 m"),
+        (["--inversion-offset", "-3"], 2, "--inversion-offset"),
         (["--max-depth", "-3"], 2, "--max-depth"),
         (["--method", "kriging"], 2, "--method"),
         (["--format", "parquet"], 2, "--format"),

@@ -252,7 +252,7 @@ def test_equalize_uses_one_lut_for_all_frames(night, tmp_path):
     src, _ = night
     out = tmp_path / "eq"
     ref = sorted(src.glob("*.png"))[2]
-    r = run("equalize", src, "-o", out, "--reference", ref.stem, "--clip", "0.008", "--json")
+    r = run("equalize", src, "-o", out, "--reference-frame", ref.stem, "--clip", "0.008", "--json")
     assert r.exit_code == 0, r.output
     lut = mcie_lut(read_image(ref), clip=0.008)
     doc = json.loads((out / "mcie_lut.json").read_text())
@@ -264,7 +264,7 @@ def test_equalize_uses_one_lut_for_all_frames(night, tmp_path):
     assert "equalised frames made with --clip 0.008, not 0.004" in line
     line = _one_error_line(run("equalize", src, "-o", out, "--clip", "0.008"))
     assert (
-        f"made with --reference {ref.resolve()}, not {sorted(src.glob('*.png'))[0].resolve()}"
+        f"made with --reference-frame {ref.resolve()}, not {sorted(src.glob('*.png'))[0].resolve()}"
         in line
     )
     assert run("equalize", src, "-o", out, "--overwrite").exit_code == 0
@@ -340,7 +340,7 @@ def test_equalize_rnw_rounding_on_real_kitti_images(kitti_object, tmp_path):
 def test_equalize_bad_input(scene, tmp_path):
     r = run("equalize", scene / "image_2", "-o", tmp_path / "o", "--clip", "0")
     assert r.exit_code == 2 and "Traceback" not in r.output
-    line = _one_error_line(run("equalize", scene / "image_2", "-o", tmp_path / "o", "--reference",
+    line = _one_error_line(run("equalize", scene / "image_2", "-o", tmp_path / "o", "--reference-frame",
                                "nope"))  # fmt: skip
     assert "nope" in line
     line = _one_error_line(run("equalize", scene / "depth_gt", "-o", tmp_path / "o2"))
@@ -356,12 +356,12 @@ def test_underwater_matches_library_and_workers(scene, tmp_path):
 
     uw = scene / "underwater"
     a, b = tmp_path / "a", tmp_path / "b"
-    r = run("underwater", uw / "seafloor", "--water", uw / "water", "-o", a, "--window", "11",
+    r = run("underwater", uw / "seafloor", "--water", uw / "water", "-o", a, "--median-window", "11",
             "--json")  # fmt: skip
     assert r.exit_code == 0, r.output
     summary = json.loads(r.stdout)
     assert summary["frames"] == 40 and summary["images"] == 40
-    r = run("underwater", uw / "seafloor", "--water", uw / "water", "-o", b, "--window", "11",
+    r = run("underwater", uw / "seafloor", "--water", uw / "water", "-o", b, "--median-window", "11",
             "--workers", "2")  # fmt: skip
     assert r.exit_code == 0, r.output
     assert _hashes(a) == {k: v for k, v in _hashes(b).items()}
@@ -382,7 +382,7 @@ def test_underwater_recovers_generator_albedo(scene, tmp_path):
     """On the generator's files: the relative error to albedo.png falls (global factor fitted)."""
     uw = scene / "underwater"
     out = tmp_path / "o"
-    assert run("underwater", uw / "seafloor", "--water", uw / "water", "-o", out, "--window",
+    assert run("underwater", uw / "seafloor", "--water", uw / "water", "-o", out, "--median-window",
                "15").exit_code == 0  # fmt: skip
     truth = json.loads((uw / "truth.json").read_text())
     albedo = read_image(uw / "albedo.png").astype(np.float64) / 255
@@ -403,14 +403,14 @@ def test_underwater_recovers_generator_albedo(scene, tmp_path):
 def test_underwater_resume_and_settings(scene, tmp_path):
     uw = scene / "underwater"
     out = tmp_path / "o"
-    args = ["underwater", uw / "seafloor", "--water", uw / "water", "-o", out, "--window", "5"]
+    args = ["underwater", uw / "seafloor", "--water", uw / "water", "-o", out, "--median-window", "5"]
     assert run(*args).exit_code == 0
     before = _hashes(out)
     (out / "000020.png").unlink()
     r = run(*args, "--json")
     assert r.exit_code == 0 and json.loads(r.stdout)["images"] > 0
     assert _hashes(out) == before
-    assert "made with --window 5, not 7" in _one_error_line(run(*args[:-1], "7"))
+    assert "made with --median-window 5, not 7" in _one_error_line(run(*args[:-1], "7"))
 
 
 def test_underwater_bad_input(scene, tmp_path):
@@ -418,13 +418,13 @@ def test_underwater_bad_input(scene, tmp_path):
     before = _hashes(uw)
     out = tmp_path / "o"
     line = _one_error_line(run("underwater", uw / "seafloor", "--water", uw / "water", "-o", out,
-                               "--window", "41"))  # fmt: skip
+                               "--median-window", "41"))  # fmt: skip
     assert "fewer than the median window" in line
     empty = tmp_path / "empty"
     empty.mkdir()
     line = _one_error_line(run("underwater", uw / "seafloor", "--water", empty, "-o", out))
     assert "no water-only frames" in line
-    r = run("underwater", uw / "seafloor", "--water", uw / "water", "-o", out, "--window", "4")
+    r = run("underwater", uw / "seafloor", "--water", uw / "water", "-o", out, "--median-window", "4")
     assert r.exit_code == 2 and "odd" in r.output
     r = run("underwater", uw / "seafloor", "--water", uw / "water", "-o", out, "--a-ref", "1,-2,3")
     assert r.exit_code == 2

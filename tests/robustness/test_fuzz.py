@@ -579,12 +579,12 @@ def test_lowlight_record_json():
 
 
 def test_lowlight_sidecar_reader(tmp_path):
-    from sparsetools.pipeline.lowlight import _read_sidecar
+    from sparsetools.io.sidecar import read_sidecar
 
     @FUZZ
     @given(data=bytes_or_mutation(b'{"config": {"seed": 0}, "record": {}}'))
     def check(data):
-        out = ours_or_success(_read_sidecar, write(tmp_path / "r.json", data))
+        out = ours_or_success(read_sidecar, write(tmp_path / "r.json", data))
         assert out is None or isinstance(out, dict)
 
     check()

@@ -8,7 +8,9 @@ import click
 
 from .options import (
     batch_options,
+    build,
     calib_option,
+    deprecated,
     emit_summary,
     image_option,
     image_size_option,
@@ -34,13 +36,13 @@ from .options import (
 @image_size_option
 @image_option
 @click.option(
-    "--window",
-    type=click.IntRange(0, 100),
+    "--neighbours",
+    type=int,
     default=5,
     show_default=True,
     metavar="K",
-    help="Merge frames t-K..t+K of the same sequence (clipped at its ends; KITTI's ground "
-    "truth: 5, i.e. 11 scans).",
+    help="Merge frames t-K..t+K of the same sequence (0..100, clipped at its ends; KITTI's "
+    "ground truth: 5, i.e. 11 scans).",
 )
 @click.option(
     "--poses",
@@ -113,6 +115,7 @@ from .options import (
     "--max-radius-px", type=click.IntRange(0, 64), default=8, show_default=True,
     help="Largest test window radius, pixels.",
 )  # fmt: skip
+@deprecated("--window", "--neighbours", command="accumulate", dest="neighbours")
 @batch_options
 def accumulate(
     clouds,
@@ -120,7 +123,7 @@ def accumulate(
     calib,
     image_size,
     image,
-    window,
+    neighbours,
     poses,
     poses_frame,
     icp,
@@ -157,14 +160,15 @@ def accumulate(
     \b
     Examples:
       sparsetools synth-scene out/video --video --static --sequences 1 --frames 12
-      sparsetools accumulate out/video -o out/acc --window 5
+      sparsetools accumulate out/video -o out/acc --neighbours 5
       sparsetools accumulate ../shared/data/real/kitti-raw-sequence-2011_09_26 \\
-          --icp --icp-min-range 20 --window 5 -o out/acc_kitti
+          --icp --icp-min-range 20 --neighbours 5 -o out/acc_kitti
       sparsetools accumulate velodyne/ --calib calib/ --poses poses.txt -o out/acc
     """
-    from ..io.sources.poses import accumulation_frames
+    from ..io.sources.poses import accumulation_inputs
     from ..ops.accumulate import AccumulateSettings
-    from ..pipeline.accumulate import IcpSettings, run_accumulate
+    from ..pipeline import run_job
+    from ..pipeline.accumulate import AccumulateJob, AccumulateRunSettings, IcpSettings
 
     icp_given = [
         name
@@ -181,12 +185,8 @@ def accumulate(
         raise click.UsageError("give --poses or --icp, not both")
     if poses is None and poses_frame != "auto":
         raise click.UsageError("--poses-frame goes with --poses")
-    if min_radius_px > max_radius_px:
-        raise click.BadParameter(
-            f"must be >= --min-radius-px ({min_radius_px}), got {max_radius_px}",
-            param_hint="--max-radius-px",
-        )
-    settings = AccumulateSettings(
+    geometry = build(
+        AccumulateSettings,
         min_depth=min_depth,
         max_depth=max_depth,
         pixel_offset=int(pixel_offset),
@@ -197,18 +197,20 @@ def accumulate(
         min_radius_px=min_radius_px,
         max_radius_px=max_radius_px,
     )
-    frames = accumulation_frames(list(clouds), calib=calib, image=image)
-    summary = run_accumulate(
-        frames,
-        out_dir,
-        window=window,
-        accumulate=settings,
-        poses=poses,
+    icp_settings = build(IcpSettings, min_range=icp_min_range, voxel=icp_voxel,
+                         max_distance=icp_max_distance)  # fmt: skip
+    build(AccumulateRunSettings, window=neighbours)  # the range of K, before any input is read
+    inputs = accumulation_inputs(list(clouds), calib=calib, image=image, poses=poses,
+                                 poses_frame=poses_frame, icp=icp, mask=mask)  # fmt: skip
+    settings = AccumulateRunSettings(
+        window=neighbours,
+        pose_source=inputs.pose_source,
         poses_frame=poses_frame,
-        icp=IcpSettings(icp_min_range, icp_voxel, icp_max_distance) if icp else None,
-        mask=mask,
+        mask=mask is not None,
         image_size=image_size,
-        batch=batch,
-        inputs=[*clouds, calib, image, poses, mask],
+        icp=icp_settings,
+        accumulate=geometry,
     )
+    summary = run_job(AccumulateJob(settings), inputs.frames, out_dir, batch=batch,
+                      inputs=[*clouds, calib, image, poses, mask])  # fmt: skip
     emit_summary(summary, as_json=as_json, title=f"accumulated depth maps in {out_dir}")

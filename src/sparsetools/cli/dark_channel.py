@@ -7,25 +7,28 @@ from pathlib import Path
 import click
 
 from ..ops.dark_channel import COMBINE_MODES, INTENSITY_MODES
-from .options import batch_options, emit_summary, non_negative, output_dir_option
-
-
-def _odd_window(ctx, param, value):
-    if value is not None and value % 2 == 0:
-        raise click.BadParameter(f"must be odd (a window centred on the pixel), got {value}")
-    return value
+from .options import (
+    batch_options,
+    deprecated,
+    emit_summary,
+    non_negative,
+    odd,
+    output_dir_option,
+)
 
 
 @click.command("dark-channel")
 @click.argument("images", nargs=-1, required=True, type=click.Path(exists=True, path_type=Path))
 @output_dir_option
 @click.option(
-    "--window",
-    type=click.IntRange(min=1),
+    "--patch-size",
+    type=int,
     default=15,
     show_default=True,
-    callback=_odd_window,
-    help="Side N of the dark channel's square window, pixels (odd).",
+    callback=odd,
+    metavar="N",
+    help="Side N of the dark channel's square patch around each pixel, pixels (odd; the "
+    "paper: 15).",
 )
 @click.option(
     "--mask-threshold",
@@ -64,15 +67,16 @@ def _odd_window(ctx, param, value):
     help="Also write OUT/pictures/<sequence>/<frame>.png: image, dark channel, LDDCV "
     "channels and mask, labelled.",
 )
+@deprecated("--window", "--patch-size", command="dark-channel", dest="patch_size")
 @batch_options
 def dark_channel(
-    images, out_dir, window, mask_threshold, mask_mode, intensity, lddcv_format, save_pictures,
+    images, out_dir, patch_size, mask_threshold, mask_mode, intensity, lddcv_format, save_pictures,
     batch,
     as_json,
 ):  # fmt: skip
     """Dark channel DC, LDDCV map and its mask M = 1[|LDDCV| > T] of every image.
 
-    DC(p) is the minimum over R, G, B and over the N x N window around p; LDDCV(i) holds the
+    DC(p) is the minimum over R, G, B and over the N x N patch around p; LDDCV(i) holds the
     largest absolute difference to the 3 x 3 neighbours of the image intensity and of DC.
     IMAGES are PNG/JPEG files or folders (a defocus-synth output folder gives its defocused
     images). Writes OUT/dark/<sequence>/<frame>.png (8-bit), OUT/lddcv/<sequence>/<frame>.npy
@@ -84,15 +88,18 @@ def dark_channel(
       sparsetools dark-channel out/defocus -o out/dc_luma --intensity luma \\
           --mask-mode separate --lddcv-format png --save-pictures
     """
-    from ..pipeline.dark_channel import DarkChannelSettings, run_dark_channel
+    from ..io.sources import image_frames
+    from ..pipeline import run_job
+    from ..pipeline.dark_channel import DarkChannelJob, DarkChannelSettings
 
     settings = DarkChannelSettings(
-        window=window,
+        window=patch_size,
         threshold=mask_threshold,
         intensity=intensity,
         mask_mode=mask_mode,
         lddcv_format=lddcv_format,
         pictures=save_pictures,
     )
-    summary = run_dark_channel(images, out_dir, settings=settings, batch=batch)
+    summary = run_job(DarkChannelJob(settings), image_frames(images), out_dir, batch=batch,
+                      inputs=images)  # fmt: skip
     emit_summary(summary, as_json=as_json, title=f"dark-channel maps written to {out_dir}")

@@ -11,10 +11,11 @@ from .options import (
     batch_options,
     calib_option,
     color_bias_option,
+    deprecated,
     depth_option,
     emit_summary,
-    noise_camera_option,
     noise_option,
+    noise_profile_option,
     output_dir_option,
     pair,
     positive,
@@ -36,11 +37,11 @@ from .options import (
     "pixels: f = K[0,0] x pixel pitch (instead of --focal-length-mm)."
 )
 @click.option(
-    "--sensor",
+    "--lens",
     type=click.Choice(list(DEFOCUS_CAMERAS)),
     default="dfd-nyu",
     show_default=True,
-    help="Camera preset (focal length, f-number, pixel pitch); dfd-nyu is the paper's.",
+    help="Lens and sensor preset (focal length, f-number, pixel pitch); dfd-nyu is the paper's.",
 )
 @click.option(
     "--focal-length-mm",
@@ -100,7 +101,7 @@ from .options import (
     help="Pixels without depth: refuse the image, or render them as infinitely far (sky).",
 )
 @noise_option(default="none")
-@noise_camera_option
+@noise_profile_option
 @ratio_option(default="1,8")
 @click.option(
     "--noise-gamma",
@@ -119,13 +120,15 @@ from .options import (
     help="Radius maps as float32 .npy (pixels), or uint16 PNG holding round(radius x 256).",
 )
 @seed_option(help="Global seed; each image uses frame_rng(seed, '<frame id>').")
+@deprecated("--sensor", "--lens", command="defocus-synth", dest="lens")
+@deprecated("--camera", "--noise-profile", command="defocus-synth", dest="noise_profile")
 @batch_options
 def defocus_synth(
     images,
     out_dir,
     depth,
     calib,
-    sensor,
+    lens,
     focal_length_mm,
     f_number,
     pixel_pitch_um,
@@ -135,7 +138,7 @@ def defocus_synth(
     max_radius,
     missing_depth,
     noise,
-    camera,
+    noise_profile,
     ratio,
     noise_gamma,
     color_bias,
@@ -159,17 +162,19 @@ def defocus_synth(
           --depth sample_data/synthetic/depth_gt -o out/defocus --missing-depth far \\
           --focal-length-mm 50 --f-number 2 --pixel-pitch-um 4.65 --focus-distance 15
       sparsetools defocus-synth images/ --depth depth/ -o out/defocus_sampled \\
-          --sensor rpi-v2 --focus-distance 0.3,3 --f-number 1.4,4 --noise eld --seed 0
+          --lens rpi-v2 --focus-distance 0.3,3 --f-number 1.4,4 --noise eld --seed 0
       sparsetools defocus-synth images/ --depth depth/ -o out/defocus_calib \\
           --calib calib/ --pixel-pitch-um 4.65 --f-number 2 --focus-distance 10
     """
-    from ..pipeline.defocus import DefocusSettings, run_defocus
+    from ..io.sources import images_with_depth
+    from ..pipeline import run_job
+    from ..pipeline.defocus import DefocusJob, DefocusSettings
 
     if calib is not None and focal_length_mm is not None:
         raise click.UsageError("give --focal-length-mm or --calib, not both")
     settings = DefocusSettings(
         seed=seed,
-        sensor=sensor,
+        sensor=lens,
         focal_length_mm=focal_length_mm,
         f_number=f_number,
         pixel_pitch_um=pixel_pitch_um,
@@ -180,11 +185,13 @@ def defocus_synth(
         max_radius=max_radius,
         missing_depth=missing_depth,
         noise=noise,
-        camera=camera,
+        camera=noise_profile,
         ratio=ratio,
         noise_gamma=noise_gamma,
         color_bias=color_bias,
         radius_format=radius_format,
     )
-    summary = run_defocus(images, out_dir, depth=depth, calib=calib, settings=settings, batch=batch)
+    frames = images_with_depth(images, depth=depth, calib=calib)
+    summary = run_job(DefocusJob(settings), frames, out_dir, batch=batch,
+                      inputs=[*images, depth, calib], desc="defocus")  # fmt: skip
     emit_summary(summary, as_json=as_json, title=f"defocused images written to {out_dir}")

@@ -6,7 +6,15 @@ from pathlib import Path
 
 import click
 
-from .options import batch_options, emit_summary, max_depth_option, output_dir_option
+from .options import (
+    batch_options,
+    deprecated,
+    emit_summary,
+    format_option,
+    method_option,
+    output_dir_option,
+    positive,
+)
 
 
 @click.command("densify")
@@ -18,11 +26,9 @@ from .options import batch_options, emit_summary, max_depth_option, output_dir_o
     type=click.Path(exists=True, path_type=Path),
 )
 @output_dir_option
-@click.option(
-    "--method",
-    type=click.Choice(["ip-basic", "nearest", "linear"]),
+@method_option(
+    ["ip-basic", "nearest", "linear"],
     default="ip-basic",
-    show_default=True,
     help="IP-Basic (Ku et al. 2018), nearest measurement, or linear on the Delaunay triangles.",
 )
 @click.option(
@@ -43,8 +49,14 @@ from .options import batch_options, emit_summary, max_depth_option, output_dir_o
     is_flag=True,
     help="IP-Basic's multi-scale version with noise removal (instead of the fast one).",
 )
-@max_depth_option(
-    default=100.0, help="IP-Basic's inversion offset, metres (depths >= this - 0.1 are ignored)."
+@click.option(
+    "--inversion-offset",
+    type=float,
+    default=100.0,
+    show_default=True,
+    callback=positive,
+    help="IP-Basic's depth inversion d' = OFFSET - d, metres (depths >= OFFSET - 0.1 are "
+    "ignored; the paper: 100).",
 )
 @click.option(
     "--outside",
@@ -53,17 +65,15 @@ from .options import batch_options, emit_summary, max_depth_option, output_dir_o
     show_default=True,
     help="Linear fill outside the convex hull of the measurements: nearest one, or 0.",
 )
-@click.option(
-    "--format",
-    "fmt",
-    type=click.Choice(["png", "npy"]),
+@format_option(
+    ["png", "npy"],
     default="png",
-    show_default=True,
     help="Dense maps as KITTI uint16 PNG (depth * 256) or float32 .npy metres.",
 )
+@deprecated("--max-depth", "--inversion-offset", command="densify", dest="inversion_offset")
 @batch_options
-def densify(sparse, out_dir, method, variant, extrapolate, multiscale, max_depth, outside, fmt,
-            batch, as_json):  # fmt: skip
+def densify(sparse, out_dir, method, variant, extrapolate, multiscale, inversion_offset, outside,
+            fmt, batch, as_json):  # fmt: skip
     """Complete sparse depth maps: IP-Basic (as published) or the nearest / linear baselines.
 
     SPARSE: depth maps (KITTI uint16 PNG or .npy metres), folders of them, the output of
@@ -81,16 +91,19 @@ def densify(sparse, out_dir, method, variant, extrapolate, multiscale, max_depth
       sparsetools densify out/depth -o out/dense_ms --multiscale --variant bilateral
       sparsetools densify out/radar -o out/radar_nearest --method nearest
     """
+    from ..io.sources import depth_frames
     from ..ops.densify import DensifySettings
-    from ..pipeline.densify import run_densify
+    from ..pipeline import run_job
+    from ..pipeline.densify import DensifyJob
 
     settings = DensifySettings(
         method=method,
         variant=variant,
         extrapolate=extrapolate,
         multiscale=multiscale,
-        max_depth=max_depth,
+        max_depth=inversion_offset,
         outside=outside,
     )
-    summary = run_densify(list(sparse), out_dir, settings=settings, fmt=fmt, batch=batch)
+    summary = run_job(DensifyJob(settings, fmt), depth_frames(sparse), out_dir, batch=batch,
+                      inputs=sparse)  # fmt: skip
     emit_summary(summary, as_json=as_json, title=f"dense depth maps in {out_dir}")

@@ -2,21 +2,12 @@
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import click
 
 from ..ops.enhance import ROUNDINGS
-from .options import batch_options, emit_summary, output_dir_option
-
-
-def _clip_limit(ctx, param, value):
-    if value is not None and not (math.isfinite(value) and value > 0):
-        raise click.BadParameter(
-            f"clip limit must be > 0 (a fraction of the pixel count), got {value}"
-        )
-    return value
+from .options import batch_options, deprecated, emit_summary, output_dir_option, positive
 
 
 @click.command("equalize")
@@ -27,11 +18,11 @@ def _clip_limit(ctx, param, value):
     type=float,
     default=0.004,
     show_default=True,
-    callback=_clip_limit,
+    callback=positive,
     help="Histogram clip limit as a fraction of the pixel count (RobotCar: 0.008).",
 )
 @click.option(
-    "--reference",
+    "--reference-frame",
     metavar="FRAME",
     help="Frame whose histogram makes the table: a path or the name of an input "
     "[default: the first image].",
@@ -45,12 +36,13 @@ def _clip_limit(ctx, param, value):
     "integer version (limit and spread excess truncated to whole pixels, values truncated; "
     "at most one level lower).",
 )
+@deprecated("--reference", "--reference-frame", command="equalize", dest="reference_frame")
 @batch_options
 def equalize(
     images,
     out_dir,
     clip,
-    reference,
+    reference_frame,
     rounding,
     batch,
     as_json,
@@ -66,12 +58,15 @@ def equalize(
     \b
     Examples:
       sparsetools equalize out/night -o out/night_mcie
-      sparsetools equalize seq/ -o out/eq --reference 000010 --clip 0.008
+      sparsetools equalize seq/ -o out/eq --reference-frame 000010 --clip 0.008
       sparsetools equalize out/night -o out/night_rnw --rounding rnw
     """
-    from ..pipeline.equalize import run_equalize
+    from ..io.sources import image_frames
+    from ..pipeline import run_job
+    from ..pipeline.equalize import EqualizeJob, EqualizeSettings
 
-    summary = run_equalize(
-        images, out_dir, clip=clip, reference=reference, rounding=rounding, batch=batch
-    )
+    settings = EqualizeSettings(clip=clip, reference=reference_frame or "", rounding=rounding)
+    ref_file = reference_frame if reference_frame and Path(reference_frame).is_file() else None
+    summary = run_job(EqualizeJob(settings), image_frames(images), out_dir, batch=batch,
+                      inputs=[*images, ref_file])  # fmt: skip
     emit_summary(summary, as_json=as_json, title=f"equalised frames written to {out_dir}")

@@ -9,31 +9,15 @@ import click
 from .options import (
     batch_options,
     calib_option,
+    deprecated,
     emit_summary,
     image_option,
     max_depth_option,
     output_dir_option,
     positive,
     resize_option,
+    size_metres,
 )
-
-
-def _window(ctx, param, value):
-    """Parse ``WxH`` in metres (e.g. 2.35x2.35) into (w, h)."""
-    if value is None:
-        return None
-    try:
-        w, h = (float(v) for v in value.lower().split("x"))
-    except ValueError:
-        raise click.BadParameter(
-            f"expected WxH in metres such as 2.35x2.35, got {value!r}"
-        ) from None
-    if not (w > 0 and h > 0) or w == float("inf") or h == float("inf"):
-        raise click.BadParameter(f"window sizes must be finite and > 0, got {value!r}")
-    return w, h
-
-
-_POSITIVE = click.FloatRange(min=0, min_open=True)
 
 
 @click.command("jbf-expand")
@@ -59,14 +43,16 @@ _POSITIVE = click.FloatRange(min=0, min_open=True)
 )
 @click.option(
     "--sigma-s",
-    type=_POSITIVE,
+    type=float,
+    callback=positive,
     default=25.0,
     show_default=True,
     help="Spatial kernel sigma, pixels.",
 )
 @click.option(
     "--sigma-r",
-    type=_POSITIVE,
+    type=float,
+    callback=positive,
     default=10.0,
     show_default=True,
     help="Range kernel sigma, intensity levels (0..255).",
@@ -79,13 +65,13 @@ _POSITIVE = click.FloatRange(min=0, min_open=True)
     help="Expand pixels whose confidence is >= this.",
 )
 @click.option(
-    "--window",
+    "--window-m",
     "window_m",
-    callback=_window,
+    callback=size_metres,
     default="2.35x2.35",
     show_default=True,
     metavar="WxH",
-    help="Real-world window in metres (authors' scripts: 1x2).",
+    help="Real-world window, width x height in metres (authors' scripts: 1x2).",
 )
 @click.option(
     "--kernel",
@@ -110,17 +96,12 @@ _POSITIVE = click.FloatRange(min=0, min_open=True)
 )
 @resize_option(help="Scale image, radar and LiDAR maps and intrinsics by S (e.g. 0.5).")
 @click.option(
-    "--confidence/--no-confidence",
-    default=True,
-    show_default=True,
-    help="Also write <frame>_conf.png (confidence * 65535) or .npy.",
-)
-@click.option(
     "--conf-format",
-    type=click.Choice(["png", "npy"]),
+    type=click.Choice(["png", "npy", "none"]),
     default="png",
     show_default=True,
-    help="Confidence map as uint16 PNG or float32 .npy.",
+    help="Confidence map <frame>_conf.png (uint16, confidence * 65535), <frame>_conf.npy "
+    "(float32), or none.",
 )
 @click.option(
     "--lidar",
@@ -128,6 +109,11 @@ _POSITIVE = click.FloatRange(min=0, min_open=True)
     help="LiDAR depth PNG or folder matched by frame: print the intrinsic-error table.",
 )
 @max_depth_option(default=80.0, help="LiDAR depth cap of the intrinsic error, metres.")
+@deprecated("--window", "--window-m", command="jbf-expand", dest="window_m", metavar="WxH")
+@deprecated("--no-confidence", "--conf-format none", command="jbf-expand", dest="conf_format",
+            value="none", is_flag=True)  # fmt: skip
+@deprecated("--confidence", "--conf-format png", command="jbf-expand", dest="conf_format",
+            value="png", is_flag=True)  # fmt: skip
 @batch_options
 def jbf_expand(
     radar,
@@ -145,7 +131,6 @@ def jbf_expand(
     range_metric,
     conflict,
     resize,
-    confidence,
     conf_format,
     lidar,
     max_depth,
@@ -167,8 +152,12 @@ def jbf_expand(
           --image out/scene/image_2 --lidar out/scene/depth_gt -o out/jbf
       sparsetools jbf-expand radar/000000.png --image 000000.png --fx 721.5 --fy 721.5 \\
           --kernel range -o out/range
+      sparsetools jbf-expand out/scene/radar --calib out/scene/calib_radar \\
+          --image out/scene/image_2 --window-m 1x2 --conf-format none -o out/jbf12
     """
-    from ..pipeline.jbf_expand import JbfSettings, format_intrinsic_table, run_jbf_expand
+    from ..io.sources import radar_frames
+    from ..pipeline import run_job
+    from ..pipeline.jbf_expand import JbfJob, JbfSettings, format_intrinsic_table
 
     if calib is None and (fx is None or fy is None):
         raise click.UsageError("give --calib, or both --fx and --fy")
@@ -184,21 +173,13 @@ def jbf_expand(
         range_metric=range_metric,
         conflict=conflict,
         resize=resize,
-        confidence=confidence,
-        conf_format=conf_format,
+        confidence=conf_format != "none",
+        conf_format="png" if conf_format == "none" else conf_format,
         max_depth=max_depth,
     )
-    summary = run_jbf_expand(
-        list(radar),
-        image=image,
-        out_dir=out_dir,
-        settings=settings,
-        calib=calib,
-        fx=fx,
-        fy=fy,
-        lidar=lidar,
-        batch=batch,
-    )
+    frames = radar_frames(radar, image=image, calib=calib, lidar=lidar)
+    summary = run_job(JbfJob(settings, fx, fy), frames, out_dir, batch=batch,
+                      inputs=[*radar, image, calib, lidar])  # fmt: skip
     result = summary.as_dict()
     table = result.pop("intrinsic_error", None)
     if table is not None:

@@ -6,6 +6,7 @@ The options of the ELD sensor noise and of the depth input (``--depth``, ``--noi
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import click
@@ -14,11 +15,12 @@ from .options import (
     batch_options,
     calib_option,
     color_bias_option,
+    deprecated,
     depth_option,
     emit_summary,
-    noise_camera_option,
     noise_cameras,
     noise_option,
+    noise_profile_option,
     output_dir_option,
     pair,
     positive,
@@ -28,6 +30,9 @@ from .options import (
 
 #: ELD noise tables shipped with the package, and "random" (one per image).
 CAMERAS = noise_cameras()
+
+
+log = logging.getLogger(__name__)
 
 
 @click.command("lowlight-synth")
@@ -51,7 +56,7 @@ CAMERAS = noise_cameras()
 )
 @click.option("--flare/--no-flare", default=True, show_default=True, help="Add lens flares.")
 @noise_option(default="eld")
-@noise_camera_option
+@noise_profile_option
 @color_bias_option
 @click.option(
     "--brightness",
@@ -109,6 +114,7 @@ CAMERAS = noise_cameras()
     show_default=True,
     help="Seed of the procedural flare-pattern bank.",
 )
+@deprecated("--camera", "--noise-profile", command="lowlight-synth", dest="noise_profile")
 @batch_options
 def lowlight_synth(
     images,
@@ -119,7 +125,7 @@ def lowlight_synth(
     variants,
     flare,
     noise,
-    camera,
+    noise_profile,
     color_bias,
     brightness,
     gamma,
@@ -145,10 +151,12 @@ def lowlight_synth(
       sparsetools lowlight-synth out/scene/image_2 --depth out/scene/depth_gt \\
           --calib out/scene/calib -o out/night
       sparsetools lowlight-synth day.png -o out/night --variants 4 --noise gaussian
-      sparsetools lowlight-synth day.png -o out/night --camera CanonEOS5D4 --color-bias
+      sparsetools lowlight-synth day.png -o out/night --noise-profile CanonEOS5D4 --color-bias
     """
+    from ..io.sources import images_with_depth
     from ..ops.lowlight import LowLightParams
-    from ..pipeline.lowlight import run_lowlight
+    from ..pipeline import run_job
+    from ..pipeline.lowlight import LowLightJob, LowLightSettings
 
     params = LowLightParams(
         brightness=brightness,
@@ -159,19 +167,15 @@ def lowlight_synth(
         flare_count=flare_count,
         flare_max_depth=flare_max_depth,
         noise=noise,
-        camera=camera,
+        camera=noise_profile,
         color_bias=color_bias,
         ratio=ratio,
         bank_seed=bank_seed,
     )
-    summary = run_lowlight(
-        images,
-        out_dir,
-        depth=depth,
-        calib=calib,
-        seed=seed,
-        variants=variants,
-        params=params,
-        batch=batch,
-    )
+    settings = LowLightSettings(seed=seed, variants=variants, params=params)
+    frames = images_with_depth(images, depth=depth, calib=calib, depth_required=False)
+    if calib is not None and depth is None:
+        log.warning("--calib without --depth: the calibration is only used to place flares in 3-D")
+    summary = run_job(LowLightJob(settings), frames, out_dir, batch=batch,
+                      inputs=[*images, depth, calib], desc="lowlight")  # fmt: skip
     emit_summary(summary, as_json=as_json, title=f"night images written to {out_dir}")

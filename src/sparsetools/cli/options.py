@@ -18,6 +18,7 @@ from ..errors import ParameterError
 
 __all__ = [
     "batch_options",
+    "build",
     "calib_option",
     "checked",
     "emit_summary",
@@ -55,6 +56,15 @@ def checked(fn):
     return callback
 
 
+def build(cls, /, **values):
+    """``cls(**values)``: a settings record made from options, which validates itself; a
+    value it refuses is a usage error naming the option (exit code 2), as click's own are."""
+    try:
+        return cls(**values)
+    except ParameterError as exc:
+        raise click.BadParameter(exc.message, param_hint=exc.option) from None
+
+
 def positive(ctx, param, value):
     """Callback: a finite number > 0 (None passes)."""
     from ..validate import check_positive
@@ -67,6 +77,13 @@ def non_negative(ctx, param, value):
     from ..validate import check_non_negative
 
     return checked(lambda v: check_non_negative(v, param.name))(ctx, param, value)
+
+
+def odd(ctx, param, value):
+    """Callback: an odd integer >= 1 (a window centred on its pixel or frame)."""
+    from ..validate import check_odd
+
+    return checked(lambda v: check_odd(v, param.name))(ctx, param, value)
 
 
 def size_wxh(ctx, param, value):
@@ -187,7 +204,11 @@ def deprecated(
                             text = convert(text)
                         except (TypeError, ValueError) as exc:
                             raise click.BadParameter(str(exc), param_hint=old) from None
-                    kw[dest] = target.process_value(ctx, text)
+                    try:
+                        kw[dest] = target.process_value(ctx, text)
+                    except click.BadParameter as exc:
+                        exc.param_hint = old  # name what the user typed
+                        raise
             return f(*args, **kw)
 
         return click.option(
@@ -325,6 +346,37 @@ def crop_option(f=None, *, help: str | None = None):
         )(fn)
 
     return deco(f) if f is not None else deco
+
+
+def format_option(choices, *, default: str, help: str):
+    """``--format``: the file format of the command's main outputs."""
+
+    def deco(fn):
+        return click.option(
+            "--format",
+            "fmt",
+            type=click.Choice(list(choices)),
+            default=default,
+            show_default=True,
+            help=help,
+        )(fn)
+
+    return deco
+
+
+def method_option(choices, *, default: str, help: str):
+    """``--method``: the algorithm the command applies."""
+
+    def deco(fn):
+        return click.option(
+            "--method",
+            type=click.Choice(list(choices)),
+            default=default,
+            show_default=True,
+            help=help,
+        )(fn)
+
+    return deco
 
 
 def seed_option(f=None, *, default: int = 0, help: str | None = None):
@@ -529,14 +581,14 @@ def noise_cameras() -> tuple[str, ...]:
     return (*CAMERA_PROFILES, "random")
 
 
-def noise_camera_option(f):
-    """``--camera``: the ELD noise table."""
+def noise_profile_option(f):
+    """``--noise-profile``: the ELD noise table (a camera's measured noise)."""
     return click.option(
-        "--camera",
+        "--noise-profile",
         type=click.Choice(noise_cameras()),
         default="SonyA7S2",
         show_default=True,
-        help="ELD noise profile (random: one per image).",
+        help="ELD noise profile: the camera whose measured noise is added (random: one per image).",
     )(f)
 
 

@@ -29,9 +29,9 @@ from .executors import Executor, LocalExecutor, SerialExecutor, make_executor
 __all__ = [
     "Batch",
     "BatchJob",
-    "FrameStats",
     "Executor",
     "FrameResult",
+    "FrameStats",
     "FrameTask",
     "LocalExecutor",
     "RunSpec",

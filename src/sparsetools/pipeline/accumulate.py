@@ -23,10 +23,10 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 from collections import defaultdict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
@@ -34,11 +34,11 @@ from ..calibration import Calibration
 from ..errors import FormatError, ParameterError, SparsetoolsError
 from ..io.atomic import atomic_path
 from ..io.sources import Frame, FrameKey
-from ..io.sources.poses import attach_poses, moving_masks
 from ..ops.accumulate import AccumulateSettings
 from ..validate import check_int_range, check_non_negative, check_positive
 from .batch import Batch, RunSummary
-from .core import FrameTask, RunSpec, check_output_dir, run_frames
+from .core import BatchJob, FrameStats, FrameTask, run_job
+from .provenance import settings_dict
 
 __all__ = [
     "ICP_DIR",
@@ -46,10 +46,11 @@ __all__ = [
     "AccumulateInput",
     "AccumulateJob",
     "AccumulateRunSettings",
+    "AccumulateStats",
     "IcpPairJob",
     "IcpSettings",
-    "accumulate_tasks",
-    "run_accumulate",
+    "IcpStats",
+    "sequences_of",
 ]
 
 log = logging.getLogger(__name__)
@@ -78,12 +79,12 @@ class IcpSettings:
 class AccumulateRunSettings:
     """What every map of a run depends on (recorded; a rerun with others is refused).
 
-    ``window`` is K; ``pose_source`` ``icp`` or the kinds :func:`attach_poses` used;
+    ``window`` is K (``--neighbours``: frames t-K..t+K); ``pose_source`` ``icp`` or the kinds :func:`attach_poses` used;
     ``poses_frame`` what a ``--poses`` file holds; ``mask``: masks given; ``icp`` is recorded
     with its defaults when the poses do not come from ICP.
     """
 
-    window: int = 5
+    window: int = field(default=5, metadata={"option": "--neighbours"})
     pose_source: str = field(default="", metadata={"option": "--poses/--icp"})
     poses_frame: str = "auto"
     mask: bool = False
@@ -92,16 +93,14 @@ class AccumulateRunSettings:
     accumulate: AccumulateSettings = field(default_factory=AccumulateSettings)
 
     def __post_init__(self) -> None:
-        check_int_range(self.window, "window", low=0, high=MAX_WINDOW)
+        check_int_range(self.window, "neighbours", low=0, high=MAX_WINDOW)
 
     def record(self) -> tuple[dict, dict]:
         """Flat settings for the folder's record and their option names."""
-        from .provenance import settings_dict
-
         flat = {k: v for k, v in settings_dict(self).items() if k not in ("icp", "accumulate")}
         flat.update({f"icp_{k}": v for k, v in settings_dict(self.icp).items()})
         flat.update(settings_dict(self.accumulate))
-        return flat, {"pose_source": "--poses/--icp"}
+        return flat, {"pose_source": "--poses/--icp", "window": "--neighbours"}
 
 
 @dataclass(frozen=True)
@@ -123,11 +122,10 @@ class AccumulateInput:
 
 
 def _calibration(inp: AccumulateInput, image_size) -> Calibration:
-    from .project import ProjectInput, ProjectSettings, resolve_calibration
+    from ..io.calib import frame_calibration
 
-    pi = ProjectInput(cloud=inp.scans[inp.reference], calib_path=inp.calib_path,
-                      calibration=inp.calibration, image=inp.image)  # fmt: skip
-    return resolve_calibration(pi, ProjectSettings(image_size=image_size))
+    return frame_calibration(calib_path=inp.calib_path, calibration=inp.calibration,
+                             image=inp.image, image_size=image_size)  # fmt: skip
 
 
 def _read_mask(path: str, calib: Calibration) -> np.ndarray:
@@ -156,12 +154,186 @@ def _read_pair(path: str) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class AccumulateJob:
-    """The per-frame job (picklable): read the window, merge, write the map and calibration."""
+class IcpPairInput:
+    source: str
+    target: str
+    source_frame: str
+    target_frame: str
 
-    settings: AccumulateRunSettings
 
-    def __call__(self, task: FrameTask[AccumulateInput]) -> dict:
+@dataclass(frozen=True)
+class IcpStats(FrameStats):
+    """One pair: ICP's fitness (fraction of inliers) and inlier RMSE, metres."""
+
+    fitness: float
+    inlier_rmse_m: float
+
+
+@dataclass(frozen=True)
+class IcpPairJob(BatchJob[IcpPairInput]):
+    """ICP of every consecutive pair (picklable): earlier scan <- this scan, written as
+    ``OUT/icp/<sequence>/<frame>.json``; the pairs are a resumable batch of their own."""
+
+    command: ClassVar[str] = "accumulate"
+    noun: ClassVar[str] = "ICP poses"
+    stats_type: ClassVar[type[FrameStats]] = IcpStats
+
+    settings: IcpSettings = field(default_factory=IcpSettings)
+
+    def tasks(self, frames: list[Frame], out_dir: Path) -> list[FrameTask[IcpPairInput]]:
+        """One task per consecutive pair of each sequence (in time order)."""
+        pairs = []
+        for fs in sequences_of(frames).values():
+            for j in range(1, len(fs)):
+                prev, f = fs[j - 1], fs[j]
+                inp = IcpPairInput(str(f.cloud), str(prev.cloud), f.id, prev.id)
+                pairs.append(FrameTask(f.key, inp, {"pose": f.key.path(out_dir, ".json")},
+                                       (f.cloud, prev.cloud)))  # fmt: skip
+        return pairs
+
+    def record(self) -> dict:
+        return {f"icp_{k}": v for k, v in settings_dict(self.settings).items()}
+
+    def __call__(self, task: FrameTask[IcpPairInput]) -> IcpStats:
+        from ..io.pointcloud import read_points
+        from ..ops.registration import icp_pose
+
+        inp, s = task.inputs, self.settings
+        r = icp_pose(read_points(inp.source), read_points(inp.target), voxel=s.voxel,
+                     max_distance=s.max_distance, min_range=s.min_range)  # fmt: skip
+        # Open3D's threaded reductions differ in the last bits from run to run: rounding to
+        # 1e-9 (nm, nrad) makes every run, whatever --workers, write the same poses.
+        T = np.round(r.T_target_from_source, 9) + 0.0
+        doc = {"target": inp.target_frame, "source": inp.source_frame,
+               "T_target_from_source": T.tolist(), "fitness": round(r.fitness, 6),
+               "inlier_rmse_m": round(r.inlier_rmse, 6)}  # fmt: skip
+        with atomic_path(task.outputs["pose"]) as tmp:
+            tmp.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+        return IcpStats(fitness=doc["fitness"], inlier_rmse_m=doc["inlier_rmse_m"])
+
+
+@dataclass(frozen=True)
+class AccumulateStats(FrameStats):
+    """One frame: scans merged, its window (``first..last`` frame), points in, kept and
+    removed by reason, valid pixels of the map (of them frame t's own), pixels, PNG pixels
+    clipped at 256 m."""
+
+    scans: int
+    window: str
+    points: int
+    kept: int
+    non_finite: int
+    behind_camera: int
+    beyond_max_depth: int
+    outside_image: int
+    masked: int
+    inconsistent: int
+    occluded: int
+    valid_pixels: int
+    own_pixels: int
+    pixels: int
+    clipped_png: int
+
+
+@dataclass(frozen=True)
+class AccumulateJob(BatchJob[AccumulateInput]):
+    """``sparsetools accumulate`` (picklable): per frame read the window, merge, write the map
+    and its calibration. With ICP poses, the pairs' batch runs first (:meth:`before`)."""
+
+    command: ClassVar[str] = "accumulate"
+    noun: ClassVar[str] = "accumulated depth maps"
+    stats_type: ClassVar[type[FrameStats]] = AccumulateStats
+    parent_only: ClassVar[tuple[str, ...]] = ("frames",)
+
+    settings: AccumulateRunSettings = field(default_factory=AccumulateRunSettings)
+    frames: tuple[Frame, ...] | None = None
+
+    @property
+    def icp(self) -> bool:
+        return self.settings.pose_source == "icp"
+
+    def planned(self, frames: list[Frame]) -> AccumulateJob:
+        """Keep the frames (for the ICP stage) and check the first frame's calibration: an
+        error every frame would have (no image size) is reported before anything is
+        written."""
+        if not frames:
+            raise ParameterError("no frames to accumulate")
+        from ..io.calib import frame_calibration
+
+        f, size = frames[0], self.settings.image_size
+        try:
+            frame_calibration(calib_path=f.calib, calibration=f.calibration, image_size=size,
+                              image=f.image if size is None else None)  # fmt: skip
+        except ParameterError:
+            raise
+        except SparsetoolsError:  # that frame's own problem: its job reports it
+            pass
+        return replace(self, frames=tuple(frames))
+
+    def tasks(self, frames: list[Frame], out_dir: Path) -> list[FrameTask[AccumulateInput]]:
+        """One task per frame, sequence by sequence: its window's scans and their poses (or
+        the ICP files of their pairs)."""
+        out, k, icp = Path(out_dir), self.settings.window, self.icp
+        tasks = []
+        for seq, fs in sequences_of(frames).items():
+            if len(fs) < 2 * k + 1:
+                log.warning("sequence '%s' has %d frame(s), fewer than the %d of --neighbours "
+                            "%d: every window is clipped to frames %s..%s", seq, len(fs),
+                            2 * k + 1, k, fs[0].key.frame, fs[-1].key.frame)  # fmt: skip
+            pair_files = [FrameKey(seq, f.key.frame).path(out / ICP_DIR, ".json") for f in fs]
+            for i, t in enumerate(fs):
+                lo, hi = max(0, i - k), min(len(fs), i + k + 1)
+                window = fs[lo:hi]
+                sized = self.settings.image_size is None and t.image is not None
+                sources = [w.cloud for w in window]
+                sources += [p for p in (t.calib, t.image if sized else None, t.mask)
+                            if p is not None]  # fmt: skip
+                sources += [p for w in window for p in w.extra_inputs]
+                inp = AccumulateInput(
+                    scans=tuple(str(w.cloud) for w in window),
+                    frames=tuple(w.id for w in window),
+                    reference=i - lo,
+                    poses=None if icp else tuple(w.pose for w in window),
+                    icp_pairs=tuple(str(p) for p in pair_files[lo + 1 : hi]) if icp else (),
+                    calib_path=None if t.calib is None else str(t.calib),
+                    calibration=t.calibration,
+                    image=str(t.image) if sized else None,
+                    mask=None if t.mask is None else str(t.mask),
+                )
+                outputs = {"depth": t.key.path(out, ".png"),
+                           "calib": t.key.path(out, ".json", prefix="calib")}  # fmt: skip
+                tasks.append(FrameTask(t.key, inp, outputs, tuple(dict.fromkeys(sources))))
+        return tasks
+
+    def record(self) -> dict:
+        return self.settings.record()[0]
+
+    def option_names(self) -> dict:
+        return self.settings.record()[1]
+
+    def before(self, out_dir: Path, batch: Batch) -> dict:
+        """With ICP poses: register every consecutive pair first (its own resumable batch in
+        ``OUT/icp``, in this run's lock); the totals of that stage."""
+        if not self.icp or self.settings.window == 0:
+            return {}
+        pairs = IcpPairJob(self.settings.icp)
+        if not pairs.tasks(list(self.frames), out_dir / ICP_DIR):
+            return {}
+        summary = run_job(pairs, self.frames, out_dir / ICP_DIR, batch=batch, desc="icp")
+        stats = pairs.stats(summary)
+        return {
+            "icp": {
+                "pairs": len(summary.results), "computed": len(summary.done),
+                "failed": len(summary.failed),
+                "fitness_min": min((st.fitness for st in stats), default=0.0),
+                "inlier_rmse_max_m": max((st.inlier_rmse_m for st in stats), default=0.0),
+                "per_pair": {r.frame_id: {"fitness": st.fitness,
+                                          "inlier_rmse_m": st.inlier_rmse_m}
+                             for r, st in zip(summary.ok, stats, strict=True)},
+            }
+        }  # fmt: skip
+
+    def __call__(self, task: FrameTask[AccumulateInput]) -> AccumulateStats:
         from ..io.calib import write_json_calib
         from ..io.image import write_depth_png
         from ..io.pointcloud import read_points
@@ -185,46 +357,40 @@ class AccumulateJob:
                          min_depth=a.min_depth, max_depth=a.max_depth,
                          calibration=calib.source)  # fmt: skip
         c = res.counts
-        valid = int(np.count_nonzero(res.depth))
-        return {
-            "scans": len(scans), "window": "..".join(FrameKey.parse(inp.frames[i]).frame
-                                                     for i in (0, -1)),
-            "points": c.points, "kept": c.kept, **{r: getattr(c, r) for r in _REASONS},
-            "valid_pixels": valid, "own_pixels": int(np.count_nonzero(res.source == inp.reference)),
-            "pixels": int(res.depth.size), "clipped_png": int(clipped),
-        }  # fmt: skip
+        return AccumulateStats(
+            scans=len(scans),
+            window="..".join(FrameKey.parse(inp.frames[i]).frame for i in (0, -1)),
+            points=c.points, kept=c.kept, **{r: getattr(c, r) for r in _REASONS},
+            valid_pixels=int(np.count_nonzero(res.depth)),
+            own_pixels=int(np.count_nonzero(res.source == inp.reference)),
+            pixels=int(res.depth.size), clipped_png=int(clipped),
+        )  # fmt: skip
 
-
-@dataclass(frozen=True)
-class IcpPairInput:
-    source: str
-    target: str
-    source_frame: str
-    target_frame: str
-
-
-@dataclass(frozen=True)
-class IcpPairJob:
-    """ICP of one consecutive pair (picklable): earlier scan <- this scan, written as JSON."""
-
-    settings: IcpSettings
-
-    def __call__(self, task: FrameTask[IcpPairInput]) -> dict:
-        from ..io.pointcloud import read_points
-        from ..ops.registration import icp_pose
-
-        inp, s = task.inputs, self.settings
-        r = icp_pose(read_points(inp.source), read_points(inp.target), voxel=s.voxel,
-                     max_distance=s.max_distance, min_range=s.min_range)  # fmt: skip
-        # Open3D's threaded reductions differ in the last bits from run to run: rounding to
-        # 1e-9 (nm, nrad) makes every run, whatever --workers, write the same poses.
-        T = np.round(r.T_target_from_source, 9) + 0.0
-        doc = {"target": inp.target_frame, "source": inp.source_frame,
-               "T_target_from_source": T.tolist(), "fitness": round(r.fitness, 6),
-               "inlier_rmse_m": round(r.inlier_rmse, 6)}  # fmt: skip
-        with atomic_path(task.outputs["pose"]) as tmp:
-            tmp.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
-        return {"fitness": doc["fitness"], "inlier_rmse_m": doc["inlier_rmse_m"]}
+    def finish(self, summary: RunSummary, tasks: list, out_dir: Path) -> dict:
+        """Totals: window, pose_source, clipped_windows, valid_pixels, density_pct, points,
+        kept, removed (by reason), removed_per_frame."""
+        k = self.settings.window
+        rows = list(zip(summary.ok, self.stats(summary), strict=True))
+        pixels = sum(st.pixels for _, st in rows)
+        valid = sum(st.valid_pixels for _, st in rows)
+        clipped = [(r, st) for r, st in rows if st.scans < 2 * k + 1]
+        totals = {
+            "window": k,
+            "pose_source": self.settings.pose_source,
+            "clipped_windows": len(clipped),
+            "valid_pixels": int(valid),
+            "density_pct": round(100.0 * valid / pixels, 4) if pixels else 0.0,
+            "points": sum(st.points for _, st in rows),
+            "kept": sum(st.kept for _, st in rows),
+            "removed": {reason: sum(getattr(st, reason) for _, st in rows) for reason in _REASONS},
+            "removed_per_frame": {
+                r.frame_id: {n: getattr(st, n) for n in ("occluded", "inconsistent", "masked")}
+                for r, st in rows
+            },
+        }
+        if clipped:
+            totals["clipped_window_frames"] = {r.frame_id: st.window for r, st in clipped}
+        return totals
 
 
 # -- tasks ---------------------------------------------------------------------------------------
@@ -245,182 +411,3 @@ def sequences_of(frames: list[Frame]) -> dict[str, list[Frame]]:
         else:
             fs.sort(key=lambda f: _order(f.key.frame))
     return dict(sorted(groups.items()))
-
-
-def accumulate_tasks(
-    frames: list[Frame],
-    out_dir: str | os.PathLike,
-    settings: AccumulateRunSettings,
-    *,
-    icp: bool = False,
-    masks: dict[FrameKey, Path] | None = None,
-) -> tuple[list[FrameTask[AccumulateInput]], list[FrameTask[IcpPairInput]]]:
-    """The frame tasks and (with ``icp``) the pair tasks, sequence by sequence."""
-    out, k = Path(out_dir), settings.window
-    tasks, pairs = [], []
-    for seq, fs in sequences_of(frames).items():
-        if len(fs) < 2 * k + 1:
-            log.warning("sequence '%s' has %d frame(s), fewer than the %d of --window %d: "
-                        "every window is clipped to frames %s..%s", seq, len(fs), 2 * k + 1,
-                        k, fs[0].key.frame, fs[-1].key.frame)  # fmt: skip
-        pair_files = [FrameKey(seq, f.key.frame).path(out / ICP_DIR, ".json") for f in fs]
-        if icp and k > 0:
-            for j in range(1, len(fs)):
-                prev, f = fs[j - 1], fs[j]
-                inp = IcpPairInput(str(f.cloud), str(prev.cloud), f.id, prev.id)
-                pairs.append(FrameTask(f.key, inp, {"pose": pair_files[j]}, (f.cloud, prev.cloud)))
-        for i, t in enumerate(fs):
-            lo, hi = max(0, i - k), min(len(fs), i + k + 1)
-            window = fs[lo:hi]
-            mask = None if masks is None else masks[t.key]
-            sized = settings.image_size is None and t.image is not None
-            sources = [w.cloud for w in window]
-            sources += [p for p in (t.calib, t.image if sized else None, mask) if p is not None]
-            sources += [p for w in window for p in w.extra_inputs]
-            inp = AccumulateInput(
-                scans=tuple(str(w.cloud) for w in window),
-                frames=tuple(w.id for w in window),
-                reference=i - lo,
-                poses=None if icp else tuple(w.pose for w in window),
-                icp_pairs=tuple(str(p) for p in pair_files[lo + 1 : hi]) if icp else (),
-                calib_path=None if t.calib is None else str(t.calib),
-                calibration=t.calibration,
-                image=str(t.image) if sized else None,
-                mask=None if mask is None else str(mask),
-            )
-            outputs = {"depth": t.key.path(out, ".png"),
-                       "calib": t.key.path(out, ".json", prefix="calib")}  # fmt: skip
-            tasks.append(FrameTask(t.key, inp, outputs, tuple(dict.fromkeys(sources))))
-    return tasks, pairs
-
-
-# -- running -------------------------------------------------------------------------------------
-
-
-def _check_inputs(frames: list[Frame], poses, icp: bool, poses_frame: str, camera: int):
-    if not frames:
-        raise ParameterError("no frames to accumulate")
-    no_calib = [f for f in frames if f.calib is None and f.calibration is None]
-    if no_calib:
-        raise ParameterError(
-            f"no calibration for frame {no_calib[0].id} ({no_calib[0].cloud}): give --calib "
-            "(a file, a KITTI raw date folder or per-frame files)", param="--calib")  # fmt: skip
-    if icp:
-        if poses is not None:
-            raise ParameterError("give --poses or --icp, not both", param="--icp")
-        return frames, "icp"
-    att = attach_poses(frames, poses, poses_frame=poses_frame, camera=camera)
-    if att.missing:
-        key, why = next(iter(att.missing.items()))
-        raise FormatError(
-            f"no pose for frame {key} ({why}; {len(att.missing)} of {len(frames)} frames lack "
-            "one): give --poses (a poses.txt or a folder of them) or --icp")  # fmt: skip
-    return list(att.frames), att.source
-
-
-def run_accumulate(
-    frames: list[Frame],
-    out_dir: str | os.PathLike,
-    *,
-    window: int = 5,
-    accumulate: AccumulateSettings | None = None,
-    poses: str | os.PathLike | None = None,
-    poses_frame: str = "auto",
-    icp: IcpSettings | None = None,
-    mask: str | os.PathLike | None = None,
-    image_size: tuple[int, int] | None = None,
-    batch: Batch | None = None,
-    inputs: list[str | os.PathLike] = (),
-) -> RunSummary:
-    """Accumulate every frame's window into its depth map (module docstring).
-
-    Parameters
-    ----------
-    frames : list of Frame
-        With a cloud and a calibration each (from ``accumulation_frames``).
-    out_dir : path-like
-    window : int
-        K (0..100): frames t-K..t+K of the same sequence.
-    accumulate : AccumulateSettings, optional
-    poses : path-like, optional
-        Pose file or folder (default: the inputs' own poses); ``poses_frame`` says of what.
-    icp : IcpSettings, optional
-        Poses by ICP between consecutive scans instead.
-    mask : path-like, optional
-        Moving-object masks matched by frame (a folder tree or a synthetic video folder).
-    image_size : (W, H), optional
-    batch : Batch, optional
-    inputs : list of path-like
-        What the user gave (the output may not be inside an input folder).
-
-    Returns
-    -------
-    RunSummary
-        Totals: window, pose_source, clipped_windows, valid_pixels, density_pct, removed (by
-        reason), removed_per_frame, and with ICP ``icp`` (per-pair fitness and RMSE).
-    """
-    batch = batch or Batch()
-    frames, source = _check_inputs(frames, poses, icp is not None, poses_frame, 2)
-    settings = AccumulateRunSettings(
-        window=window, pose_source=source, poses_frame=poses_frame, mask=mask is not None,
-        image_size=image_size, icp=icp or IcpSettings(),
-        accumulate=accumulate or AccumulateSettings(),
-    )  # fmt: skip
-    masks = None if mask is None else moving_masks(frames, mask)
-    tasks, pairs = accumulate_tasks(frames, out_dir, settings, icp=icp is not None, masks=masks)
-    out = check_output_dir(out_dir, [p for p in inputs if p is not None])
-    try:  # one clear error before anything is written (no image size, a bad calibration)
-        _calibration(tasks[0].inputs, image_size)
-    except ParameterError:
-        raise
-    except SparsetoolsError:  # that frame's own problem: its job reports it
-        pass
-    record, options = settings.record()
-    icp_summary: list[RunSummary] = []
-
-    def register_pairs():
-        if pairs:
-            icp_record = {k: v for k, v in record.items() if k.startswith("icp_")}
-            spec = RunSpec("accumulate", check_output_dir(out / ICP_DIR, []), icp_record,
-                           noun="ICP poses")  # fmt: skip
-            icp_summary.append(run_frames(IcpPairJob(settings.icp), pairs, batch=batch,
-                                          spec=spec, desc="icp"))  # fmt: skip
-
-    spec = RunSpec("accumulate", out, record, noun="accumulated depth maps", options=options)
-    summary = run_frames(AccumulateJob(settings), tasks, batch=batch, spec=spec,
-                         before=register_pairs)  # fmt: skip
-    return summary.with_totals(_totals(summary, settings, icp_summary))
-
-
-def _totals(summary: RunSummary, settings: AccumulateRunSettings, icp: list) -> dict:
-    ok = summary.ok
-    pixels, valid = summary.total("pixels"), summary.total("valid_pixels")
-    clipped = [r for r in ok if r.stats.get("scans", 0) < 2 * settings.window + 1]
-    totals = {
-        "window": settings.window,
-        "pose_source": settings.pose_source,
-        "clipped_windows": len(clipped),
-        "valid_pixels": int(valid),
-        "density_pct": round(100.0 * valid / pixels, 4) if pixels else 0.0,
-        "points": int(summary.total("points")),
-        "kept": int(summary.total("kept")),
-        "removed": {r: int(summary.total(r)) for r in _REASONS},
-        "removed_per_frame": {
-            r.frame_id: {k: int(r.stats.get(k, 0)) for k in ("occluded", "inconsistent", "masked")}
-            for r in ok
-        },
-    }
-    if clipped:
-        totals["clipped_window_frames"] = {r.frame_id: r.stats.get("window") for r in clipped}
-    if icp:
-        pairs = icp[0].ok
-        fit = [r.stats["fitness"] for r in pairs]
-        rmse = [r.stats["inlier_rmse_m"] for r in pairs]
-        totals["icp"] = {
-            "pairs": len(icp[0].results), "computed": len(icp[0].done),
-            "failed": len(icp[0].failed),
-            "fitness_min": min(fit, default=0.0), "inlier_rmse_max_m": max(rmse, default=0.0),
-            "per_pair": {r.frame_id: {"fitness": r.stats["fitness"],
-                                      "inlier_rmse_m": r.stats["inlier_rmse_m"]} for r in pairs},
-        }  # fmt: skip
-    return totals

@@ -171,6 +171,15 @@ class BatchJob(Generic[I]):
     command: ClassVar[str] = ""
     noun: ClassVar[str] = "results"
     stats_type: ClassVar[type[FrameStats]] = FrameStats
+    #: Fields only the parent process uses (in :meth:`before` and :meth:`finish`): they are
+    #: not sent to worker processes with every task.
+    parent_only: ClassVar[tuple[str, ...]] = ()
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        for name in self.parent_only:
+            state[name] = None
+        return state
 
     # -- what the batch fixes before anything is written --------------------------------------
     def planned(self, frames: list) -> BatchJob[I]:
@@ -205,9 +214,10 @@ class BatchJob(Generic[I]):
     def prepare(self) -> None:
         """Load what every frame uses, once, before a pool forks (optional)."""
 
-    def before(self, out_dir: Path, batch: Batch) -> None:
+    def before(self, out_dir: Path, batch: Batch) -> Mapping | None:
         """Once the folder is checked and before any frame runs: write the shared files the
-        frames read, or run a first stage of the command (optional)."""
+        frames read, or run a first stage of the command (optional). Returns totals of that
+        stage (added after :meth:`finish`'s)."""
 
     def __call__(self, task: FrameTask[I]) -> FrameStats:
         raise NotImplementedError
@@ -458,6 +468,11 @@ def run_job(
         options=job.option_names(),
         shared_outputs=tuple(job.shared_outputs(out)),
     )
+    stage: dict = {}
+
+    def before() -> None:
+        stage.update(job.before(out, batch) or {})
+
     summary = run_frames(
         job,
         tasks,
@@ -465,9 +480,9 @@ def run_job(
         spec=spec,
         complete=job.is_complete(out),
         desc=desc or job.command,
-        before=functools.partial(job.before, out, batch),
+        before=before,
     )
-    return summary.with_totals(job.finish(summary, tasks, out))
+    return summary.with_totals({**job.finish(summary, tasks, out), **stage})
 
 
 def check_output_dir(out_dir: str | os.PathLike, inputs: Iterable[str | os.PathLike]) -> Path:

@@ -17,19 +17,18 @@ Per frame (key ``<sequence>/<frame>``), under one prefix per role:
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
-from ..errors import FormatError, ParameterError
+from ..errors import FormatError
 from ..io.atomic import atomic_path
 from ..io.sources import Frame
-from ..validate import check_choice, check_int_range, check_non_negative
-from .batch import Batch, RunSummary
-from .core import FrameTask, RunSpec, check_output_dir, run_frames
-from .lowlight import image_frames
+from ..validate import check_choice, check_non_negative, check_odd
+from .batch import RunSummary
+from .core import BatchJob, FrameStats, FrameTask
 
 __all__ = [
     "LDDCV_FORMATS",
@@ -37,8 +36,7 @@ __all__ = [
     "DarkChannelInput",
     "DarkChannelJob",
     "DarkChannelSettings",
-    "dark_channel_tasks",
-    "run_dark_channel",
+    "DarkChannelStats",
 ]
 
 LDDCV_FORMATS = ("npy", "png")
@@ -57,7 +55,7 @@ class DarkChannelSettings:
     Attributes
     ----------
     window : int, pixels
-        Odd side ``N`` of the dark-channel window (paper: 15).
+        Odd side ``N`` of the dark channel's square patch (paper: 15; ``--patch-size``).
     threshold : float
         Mask threshold ``T`` in the units of an image in [0, 1] (paper: 0.05).
     intensity : {"mean", "luma"}
@@ -69,7 +67,7 @@ class DarkChannelSettings:
         Also write a labelled picture per frame.
     """
 
-    window: int = 15
+    window: int = field(default=15, metadata={"option": "--patch-size"})
     threshold: float = field(default=0.05, metadata={"option": "--mask-threshold"})
     intensity: str = "mean"
     mask_mode: str = "norm"
@@ -79,11 +77,7 @@ class DarkChannelSettings:
     def __post_init__(self) -> None:
         from ..ops.dark_channel import COMBINE_MODES, INTENSITY_MODES
 
-        window = check_int_range(self.window, "window", low=1)
-        if window % 2 == 0:
-            raise ParameterError(f"must be odd (a window centred on the pixel), got {window}",
-                                 param="window")  # fmt: skip
-        object.__setattr__(self, "window", window)
+        object.__setattr__(self, "window", check_odd(self.window, "patch_size"))
         object.__setattr__(self, "threshold", check_non_negative(self.threshold, "mask_threshold"))
         check_choice(self.intensity, "intensity", INTENSITY_MODES)
         check_choice(self.mask_mode, "mask_mode", COMBINE_MODES)
@@ -103,29 +97,6 @@ def _channel_paths(key, out: Path, prefix: str, suffix: str, role: str) -> dict[
         f"{role}_{c}": FrameKey(key.sequence, f"{key.frame}_{c}").path(out, suffix, prefix=prefix)
         for c in CHANNELS
     }
-
-
-def dark_channel_tasks(
-    frames: list[Frame], out_dir: str | os.PathLike, settings: DarkChannelSettings
-) -> list[FrameTask[DarkChannelInput]]:
-    """One task per image; roles ``dark``, ``lddcv`` (or ``lddcv_y``, ``lddcv_dc``), ``mask``
-    (or ``mask_y``, ``mask_dc``) and, with pictures, ``picture``."""
-    out = Path(out_dir)
-    tasks = []
-    for f in frames:
-        outputs = {"dark": f.key.path(out, ".png", prefix="dark")}
-        if settings.lddcv_format == "npy":
-            outputs["lddcv"] = f.key.path(out, ".npy", prefix="lddcv")
-        else:
-            outputs.update(_channel_paths(f.key, out, "lddcv", ".png", "lddcv"))
-        if settings.mask_mode == "separate":
-            outputs.update(_channel_paths(f.key, out, "mask", ".png", "mask"))
-        else:
-            outputs["mask"] = f.key.path(out, ".png", prefix="mask")
-        if settings.pictures:
-            outputs["picture"] = f.key.path(out, ".png", prefix="pictures")
-        tasks.append(FrameTask(f.key, DarkChannelInput(str(f.image)), outputs, (f.image,)))
-    return tasks
 
 
 def _write_png(path: Path, array: np.ndarray) -> None:
@@ -175,10 +146,51 @@ def _picture(image: np.ndarray, features) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class DarkChannelJob:
-    """The per-frame job of ``dark-channel`` (picklable): read, compute, write every role."""
+class DarkChannelStats(FrameStats):
+    """One image: the fraction of its pixels in the mask (with separate masks, of either
+    channel's pixels counted apart), mean dark channel, mean LDDCV of each channel."""
 
-    settings: DarkChannelSettings
+    mask_fraction: float
+    dark_mean: float
+    lddcv_mean_y: float
+    lddcv_mean_dc: float
+
+
+@dataclass(frozen=True)
+class DarkChannelJob(BatchJob[DarkChannelInput]):
+    """``sparsetools dark-channel`` (picklable): per image read, compute, write every role."""
+
+    command: ClassVar[str] = "dark-channel"
+    noun: ClassVar[str] = "dark-channel maps"
+    stats_type: ClassVar[type[FrameStats]] = DarkChannelStats
+
+    settings: DarkChannelSettings = field(default_factory=DarkChannelSettings)
+
+    def tasks(self, frames: list[Frame], out_dir: Path) -> list[FrameTask[DarkChannelInput]]:
+        """One task per image; roles ``dark``, ``lddcv`` (or ``lddcv_y``, ``lddcv_dc``),
+        ``mask`` (or ``mask_y``, ``mask_dc``) and, with pictures, ``picture``."""
+        s, out = self.settings, out_dir
+        tasks = []
+        for f in frames:
+            outputs = {"dark": f.key.path(out, ".png", prefix="dark")}
+            if s.lddcv_format == "npy":
+                outputs["lddcv"] = f.key.path(out, ".npy", prefix="lddcv")
+            else:
+                outputs.update(_channel_paths(f.key, out, "lddcv", ".png", "lddcv"))
+            if s.mask_mode == "separate":
+                outputs.update(_channel_paths(f.key, out, "mask", ".png", "mask"))
+            else:
+                outputs["mask"] = f.key.path(out, ".png", prefix="mask")
+            if s.pictures:
+                outputs["picture"] = f.key.path(out, ".png", prefix="pictures")
+            tasks.append(FrameTask(f.key, DarkChannelInput(str(f.image)), outputs, (f.image,)))
+        return tasks
+
+    def finish(self, summary: RunSummary, tasks: list, out_dir: Path) -> dict:
+        """Totals: ``mask_fraction``, the mean over the frames."""
+        stats = self.stats(summary)
+        return {"mask_fraction": sum(st.mask_fraction for st in stats) / len(stats) if stats
+                else 0.0}  # fmt: skip
 
     def __call__(self, task: FrameTask[DarkChannelInput]) -> dict:
         from ..io.image import read_image, write_image
@@ -204,45 +216,9 @@ class DarkChannelJob:
                 _write_png(outputs[f"mask_{c}"], f.mask[:, :, k].astype(np.uint8) * 255)
         if "picture" in outputs:
             write_image(outputs["picture"], _picture(image, f))
-        return {
-            "mask_fraction": float(f.mask.mean()),
-            "dark_mean": float(f.dark.mean(dtype=np.float64)),
-            "lddcv_mean_y": float(f.lddcv[:, :, 0].mean(dtype=np.float64)),
-            "lddcv_mean_dc": float(f.lddcv[:, :, 1].mean(dtype=np.float64)),
-        }
-
-
-def run_dark_channel(
-    images,
-    out_dir: str | os.PathLike,
-    *,
-    settings: DarkChannelSettings | None = None,
-    batch: Batch | None = None,
-) -> RunSummary:
-    """Dark channel, LDDCV map and mask of a batch of images.
-
-    Parameters
-    ----------
-    images : list of path-like
-        Image files and/or folders (a folder written by ``defocus-synth`` gives its
-        defocused images).
-    out_dir : path-like
-    settings : DarkChannelSettings, optional
-    batch : Batch, optional
-
-    Returns
-    -------
-    RunSummary
-        Totals: ``mask_fraction`` (mean over the frames of the fraction of pixels in the
-        mask; with ``--mask-mode separate``, of either channel's pixels counted apart).
-    """
-    batch = batch or Batch()
-    settings = settings or DarkChannelSettings()
-    frames = image_frames(images)
-    out = check_output_dir(out_dir, [*map(str, images)])
-    tasks = dark_channel_tasks(frames, out, settings)
-    spec = RunSpec("dark-channel", out, settings, noun="dark-channel maps")
-    summary = run_frames(DarkChannelJob(settings), tasks, batch=batch, spec=spec,
-                         desc="dark-channel")  # fmt: skip
-    n = len(summary.ok)
-    return summary.with_totals({"mask_fraction": summary.total("mask_fraction") / n if n else 0.0})
+        return DarkChannelStats(
+            mask_fraction=float(f.mask.mean()),
+            dark_mean=float(f.dark.mean(dtype=np.float64)),
+            lddcv_mean_y=float(f.lddcv[:, :, 0].mean(dtype=np.float64)),
+            lddcv_mean_dc=float(f.lddcv[:, :, 1].mean(dtype=np.float64)),
+        )

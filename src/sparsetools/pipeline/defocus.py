@@ -22,18 +22,19 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
 from ..errors import FormatError, ParameterError
 from ..io.atomic import atomic_path
+from ..io.sidecar import read_sidecar
 from ..io.sources import Frame
-from ..validate import check_choice, check_positive
-from .batch import Batch, RunSummary
-from .core import FrameTask, RunSpec, check_output_dir, run_frames
-from .lowlight import image_frames, read_sidecar
+from ..validate import check_choice, check_int_range, check_pair, check_positive
+from .batch import RunSummary
+from .core import BatchJob, FrameStats, FrameTask
 
 __all__ = [
     "MANIFEST",
@@ -44,8 +45,7 @@ __all__ = [
     "DefocusInput",
     "DefocusJob",
     "DefocusSettings",
-    "defocus_tasks",
-    "run_defocus",
+    "DefocusStats",
     "write_defocus_manifest",
 ]
 
@@ -57,19 +57,6 @@ RADIUS_FORMATS = ("npy", "png")
 RADIUS_PNG_SCALE = 256.0
 
 
-def _range(value, name: str) -> tuple[float, float]:
-    """One number (fixed) or a (low, high) pair with 0 < low <= high."""
-    if isinstance(value, (int, float)) and not isinstance(value, bool):
-        value = (value, value)
-    pair = tuple(value) if isinstance(value, (tuple, list)) else ()
-    if len(pair) != 2:
-        raise ParameterError(f"must be a number or a (low, high) pair, got {value!r}", param=name)
-    lo, hi = (check_positive(v, name) for v in pair)
-    if lo > hi:
-        raise ParameterError(f"range is inverted ({lo} > {hi})", param=name)
-    return (lo, hi)
-
-
 @dataclass(frozen=True)
 class DefocusSettings:
     """What the defocused images depend on (the same for every frame).
@@ -79,8 +66,8 @@ class DefocusSettings:
     seed : int
         Global seed; frame ``k`` draws from ``frame_rng(seed, str(key))``.
     sensor : str
-        Camera preset (:data:`sparsetools.ops.defocus.DEFOCUS_CAMERAS`): focal length,
-        f-number and pixel pitch, each replaced by an explicit value when one is given.
+        Lens preset (:data:`sparsetools.ops.defocus.DEFOCUS_CAMERAS`, ``--lens``): focal
+        length, f-number and pixel pitch, each replaced by an explicit value when one is given.
     focal_length_mm : float, optional
         Focal length ``f``, millimetres.
     f_number : (float, float), optional
@@ -98,7 +85,7 @@ class DefocusSettings:
     noise : {"none", "eld", "gaussian"}
         ELD sensor noise after the blur.
     camera : str
-        ELD noise table (``random``: one per image).
+        ELD noise table (``--noise-profile``; ``random``: one per image).
     ratio : (float, float)
         Exposure ratio of the noise, ``~ logU``.
     noise_gamma : float
@@ -110,7 +97,7 @@ class DefocusSettings:
     """
 
     seed: int = 0
-    sensor: str = "dfd-nyu"
+    sensor: str = field(default="dfd-nyu", metadata={"option": "--lens"})
     focal_length_mm: float | None = None
     f_number: tuple[float, float] | None = None
     pixel_pitch_um: float | None = None
@@ -121,7 +108,7 @@ class DefocusSettings:
     max_radius: float = 64.0
     missing_depth: str = "error"
     noise: str = "none"
-    camera: str = "SonyA7S2"
+    camera: str = field(default="SonyA7S2", metadata={"option": "--noise-profile"})
     ratio: tuple[float, float] = (1.0, 8.0)
     noise_gamma: float = 2.2
     color_bias: bool = False
@@ -131,8 +118,8 @@ class DefocusSettings:
         from ..ops.defocus import DEFOCUS_CAMERAS
 
         set_ = object.__setattr__  # frozen: normalise once
-        set_(self, "seed", int(self.seed))
-        check_choice(self.sensor, "sensor", DEFOCUS_CAMERAS)
+        set_(self, "seed", check_int_range(self.seed, "seed"))
+        check_choice(self.sensor, "lens", DEFOCUS_CAMERAS)
         check_positive(self.focal_length_mm, "focal_length_mm", allow_none=True)
         check_positive(self.pixel_pitch_um, "pixel_pitch_um", allow_none=True)
         if self.calib and self.focal_length_mm is not None:
@@ -141,9 +128,10 @@ class DefocusSettings:
                 param="focal_length_mm",
             )
         if self.f_number is not None:
-            set_(self, "f_number", _range(self.f_number, "f_number"))
-        set_(self, "focus_distance", _range(self.focus_distance, "focus_distance"))
-        set_(self, "ratio", _range(self.ratio, "ratio"))
+            set_(self, "f_number", check_pair(self.f_number, "f_number", low=0, strict=True))
+        set_(self, "focus_distance",
+             check_pair(self.focus_distance, "focus_distance", low=0, strict=True))  # fmt: skip
+        set_(self, "ratio", check_pair(self.ratio, "ratio", low=0, strict=True))
         check_choice(self.radius_format, "radius_format", RADIUS_FORMATS)
         if not self.calib:  # with a calibration the focal length is known per frame only
             f_m = self.optics().focal_length_m
@@ -183,7 +171,7 @@ class DefocusSettings:
         f_m = preset.focal_length_m if self.focal_length_mm is None else self.focal_length_mm / 1e3
         return CameraOptics(
             f"{self.sensor}, explicit values", f_m, f_number, pitch_m,
-            f"--sensor {self.sensor} with the values given on the command line",
+            f"--lens {self.sensor} with the values given on the command line",
         )  # fmt: skip
 
     def params(self, focal_length_px: float | None = None):
@@ -210,25 +198,7 @@ class DefocusInput:
     image: str
     depth: str
     calib: str | None = None
-
-
-def defocus_tasks(
-    frames: list[Frame], out_dir: str | os.PathLike, settings: DefocusSettings
-) -> list[FrameTask[DefocusInput]]:
-    """One task per frame: roles ``image``, ``radius`` and ``record`` (module docstring)."""
-    out = Path(out_dir)
-    suffix = "." + settings.radius_format
-    tasks = []
-    for f in frames:
-        outputs = {
-            "image": f.key.path(out, ".png"),
-            "radius": f.key.path(out, suffix, prefix=RADIUS_DIR),
-            "record": f.key.path(out, ".json", prefix=RECORDS),
-        }
-        inp = DefocusInput(str(f.image), str(f.depth), None if f.calib is None else str(f.calib))
-        sources = tuple(p for p in (f.image, f.depth, f.calib) if p is not None)
-        tasks.append(FrameTask(f.key, inp, outputs, sources))
-    return tasks
+    out_dir: str = "."
 
 
 def _write_radius(path: Path, radius: np.ndarray, fmt: str) -> int:
@@ -249,17 +219,11 @@ def _write_radius(path: Path, radius: np.ndarray, fmt: str) -> int:
         return saturated
 
 
-def _focal_length_px(calib_path: str, width: int, height: int) -> float:
-    from ..io.calib import load_calibration
+def _focal_length_px(inp: DefocusInput) -> float:
+    """``K[0, 0]`` of the frame's calibration, checked against its image."""
+    from ..io.calib import frame_calibration
 
-    calib = load_calibration(calib_path)
-    if calib.width is not None and calib.height is not None:
-        if (calib.width, calib.height) != (width, height):
-            raise FormatError(
-                f"{calib_path}: calibration is for {calib.width}x{calib.height} images but the "
-                f"image is {width}x{height}"
-            )
-    return float(calib.K[0, 0])
+    return float(frame_calibration(calib_path=inp.calib, image=inp.image, what="image").K[0, 0])
 
 
 def _relative(path: Path, out: Path) -> str:
@@ -267,14 +231,74 @@ def _relative(path: Path, out: Path) -> str:
 
 
 @dataclass(frozen=True)
-class DefocusJob:
-    """The per-frame job of ``defocus-synth`` (picklable): read, defocus, write the image,
-    the radius map and the record sidecar."""
+class DefocusStats(FrameStats):
+    """One image: images written (1), pixels without depth (rendered infinitely far), the
+    largest and mean blur radius (pixels), radii saturated by the PNG encoding."""
 
-    settings: DefocusSettings
-    out_dir: str
+    images: int
+    far_pixels: int
+    radius_max: float
+    radius_mean: float
+    radius_saturated: int
 
-    def __call__(self, task: FrameTask[DefocusInput]) -> dict:
+
+@dataclass(frozen=True)
+class DefocusJob(BatchJob[DefocusInput]):
+    """``sparsetools defocus-synth`` (picklable): per image read, defocus, write the image,
+    the radius map and the record sidecar; then the manifest of all of them."""
+
+    command: ClassVar[str] = "defocus-synth"
+    noun: ClassVar[str] = "defocused images"
+    stats_type: ClassVar[type[FrameStats]] = DefocusStats
+
+    settings: DefocusSettings = field(default_factory=DefocusSettings)
+
+    def planned(self, frames: list[Frame]) -> DefocusJob:
+        """With calibrations the focal length comes from them (``settings.calib``)."""
+        if not frames:
+            raise ParameterError("no images given")
+        has_calib = frames[0].calib is not None
+        if has_calib and not self.settings.calib:
+            return replace(self, settings=replace(self.settings, calib=True))
+        if not has_calib and self.settings.calib:
+            raise ParameterError("settings say the focal length comes from a calibration: give "
+                                 "one", param="calib")  # fmt: skip
+        return self
+
+    def tasks(self, frames: list[Frame], out_dir: Path) -> list[FrameTask[DefocusInput]]:
+        """One task per frame: roles ``image``, ``radius`` and ``record`` (module docstring)."""
+        suffix = "." + self.settings.radius_format
+        tasks = []
+        for f in frames:
+            outputs = {
+                "image": f.key.path(out_dir, ".png"),
+                "radius": f.key.path(out_dir, suffix, prefix=RADIUS_DIR),
+                "record": f.key.path(out_dir, ".json", prefix=RECORDS),
+            }
+            inp = DefocusInput(str(f.image), str(f.depth),
+                               None if f.calib is None else str(f.calib), str(out_dir))  # fmt: skip
+            sources = tuple(p for p in (f.image, f.depth, f.calib) if p is not None)
+            tasks.append(FrameTask(f.key, inp, outputs, sources))
+        return tasks
+
+    def shared_outputs(self, out_dir: Path) -> tuple[Path, ...]:
+        return (out_dir / MANIFEST,)
+
+    def finish(self, summary: RunSummary, tasks: list, out_dir: Path) -> dict:
+        """Rebuild the manifest; totals: ``images``, ``far_pixels``, ``radius_max`` (over the
+        run), ``radius_saturated``, ``manifest_rows``, ``manifest``."""
+        _, rows = write_defocus_manifest(out_dir, tasks)
+        stats = self.stats(summary)
+        return {
+            "images": sum(st.images for st in stats),
+            "far_pixels": sum(st.far_pixels for st in stats),
+            "radius_max": max((st.radius_max for st in stats), default=0.0),
+            "radius_saturated": sum(st.radius_saturated for st in stats),
+            "manifest_rows": rows,
+            "manifest": str(out_dir / MANIFEST),
+        }
+
+    def __call__(self, task: FrameTask[DefocusInput]) -> DefocusStats:
         from ..io.dataset import read_depth_file
         from ..io.image import read_image, write_image
         from ..ops.defocus import defocus
@@ -295,14 +319,14 @@ class DefocusJob:
                 f"{inp.depth}: no depth at {holes} of {h * w} pixels: fill the holes, or give "
                 "--missing-depth far to render them as infinitely far"
             )
-        f_px = _focal_length_px(inp.calib, w, h) if inp.calib else None
+        f_px = _focal_length_px(inp) if inp.calib else None
         params = s.params(f_px)
         blurred, radius, record = defocus(
             image, depth, rng=frame_rng(s.seed, task.frame_id), params=params
         )
         write_image(task.outputs["image"], blurred)
         saturated = _write_radius(task.outputs["radius"], radius, s.radius_format)
-        out = Path(self.out_dir)
+        out = Path(inp.out_dir)
         side = {
             "output": _relative(task.outputs["image"], out),
             "radius": _relative(task.outputs["radius"], out),
@@ -312,13 +336,13 @@ class DefocusJob:
         }  # fmt: skip
         with atomic_path(task.outputs["record"]) as tmp:
             tmp.write_text(json.dumps(side, sort_keys=True) + "\n", encoding="utf-8")
-        return {
-            "images": 1,
-            "far_pixels": holes,
-            "radius_max": float(radius.max()),
-            "radius_mean": float(radius.mean(dtype=np.float64)),
-            "radius_saturated": saturated,
-        }
+        return DefocusStats(
+            images=1,
+            far_pixels=holes,
+            radius_max=float(radius.max()),
+            radius_mean=float(radius.mean(dtype=np.float64)),
+            radius_saturated=saturated,
+        )
 
 
 def _manifest_schema():
@@ -383,77 +407,3 @@ def write_defocus_manifest(out_dir: str | os.PathLike, tasks: list[FrameTask]) -
     with atomic_path(path) as tmp:
         pq.write_table(table, tmp)
     return path, len(rows)
-
-
-def run_defocus(
-    images,
-    out_dir: str | os.PathLike,
-    *,
-    depth,
-    calib=None,
-    settings: DefocusSettings | None = None,
-    batch: Batch | None = None,
-) -> RunSummary:
-    """Defocus a batch of images with their dense depth maps.
-
-    Parameters
-    ----------
-    images : list of path-like
-        Image files and/or folders.
-    out_dir : path-like
-    depth : path-like
-        A depth map (KITTI uint16 PNG or ``.npy`` metres; only with a single image) or a
-        folder of them matched by frame.
-    calib : path-like, optional
-        Calibration shared by every frame, or a folder of per-frame files: its ``K[0, 0]``
-        gives the focal length in pixels (``settings.calib`` is then set).
-    settings : DefocusSettings, optional
-    batch : Batch, optional
-
-    Returns
-    -------
-    RunSummary
-        Totals: ``images``, ``far_pixels`` (pixels without depth, rendered as infinitely
-        far), ``radius_max`` (pixels, over the run), ``radius_saturated`` (PNG encoding),
-        ``manifest_rows``, ``manifest``.
-    """
-    from ..io.sources import attach
-
-    batch = batch or Batch()
-    settings = settings or DefocusSettings()
-    if calib is not None and not settings.calib:
-        settings = replace(settings, calib=True)  # refuses an explicit focal length too
-    elif calib is None and settings.calib:
-        raise ParameterError("settings say the focal length comes from a calibration: give one",
-                             param="calib")  # fmt: skip
-    frames = image_frames(images)
-    frames, missing = attach(
-        frames, depth, "depth", role="depth", option="--depth", shared_ok=False
-    )
-    if missing:
-        absent = [str(f.depth) for f in frames if not Path(f.depth).is_file()]
-        more = f" (and {len(absent) - 3} more)" if len(absent) > 3 else ""
-        raise FormatError(f"no depth map for some images: {', '.join(absent[:3])}{more}")
-    frames, missing = attach(frames, calib, "calib", role="calib", option="--calib")
-    if missing:
-        absent = [str(f.calib) for f in frames if not Path(f.calib).exists()]
-        raise FormatError(f"no calibration for some images: {', '.join(absent[:3])}")
-    inputs = [*map(str, images)] + [str(p) for p in (depth, calib) if p is not None]
-    out = check_output_dir(out_dir, inputs)
-    tasks = defocus_tasks(frames, out, settings)
-    spec = RunSpec(
-        "defocus-synth", out, settings, noun="defocused images", shared_outputs=(out / MANIFEST,)
-    )
-    summary = run_frames(DefocusJob(settings, str(out)), tasks, batch=batch, spec=spec,
-                         desc="defocus")  # fmt: skip
-    _, rows = write_defocus_manifest(out, tasks)
-    return summary.with_totals(
-        {
-            "images": int(summary.total("images")),
-            "far_pixels": int(summary.total("far_pixels")),
-            "radius_max": max((r.stats.get("radius_max", 0.0) for r in summary.ok), default=0.0),
-            "radius_saturated": int(summary.total("radius_saturated")),
-            "manifest_rows": rows,
-            "manifest": str(out / MANIFEST),
-        }
-    )

@@ -3,7 +3,7 @@
 Inputs are sparse depth maps (KITTI uint16 PNG or float32 ``.npy`` metres): files, folder
 trees, folders written by ``project`` / ``beams`` / ``jbf-expand`` / ``accumulate`` (read
 through their record), KITTI depth-completion trees (``proj_depth/velodyne_raw``), all
-through :func:`sparsetools.io.sources.index_input` with the role ``sparse``. Each map goes
+through :func:`sparsetools.io.sources.depth_frames`. Each map goes
 through :func:`sparsetools.ops.densify.densify` with one :class:`DensifySettings`.
 
 Outputs, per frame ``<sequence>/<frame>`` (a flat input has no ``<sequence>/``):
@@ -16,30 +16,23 @@ Outputs, per frame ``<sequence>/<frame>`` (a flat input has no ``<sequence>/``):
 
 from __future__ import annotations
 
-import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
 from ..errors import FormatError, ParameterError
 from ..io.atomic import atomic_path
-from ..io.sources import FrameKey
+from ..io.sources import Frame
 from ..ops.densify import DensifySettings
 from ..validate import check_choice
-from .batch import Batch, RunSummary
-from .core import FrameTask, RunSpec, check_output_dir, run_frames
+from .batch import RunSummary
+from .core import BatchJob, FrameStats, FrameTask
+from .provenance import settings_dict
 
-__all__ = [
-    "FORMATS",
-    "MASK_DIR",
-    "DensifyInput",
-    "DensifyJob",
-    "densify_tasks",
-    "run_densify",
-    "sparse_maps",
-]
+__all__ = ["FORMATS", "MASK_DIR", "DensifyInput", "DensifyJob", "DensifyStats"]
 
 FORMATS = ("png", "npy")
 MASK_DIR = "mask"
@@ -63,18 +56,57 @@ def _write_mask(path: Path, measured: np.ndarray) -> None:
 
 
 @dataclass(frozen=True)
-class DensifyJob:
-    """The per-frame job (picklable): read, densify, write the dense map and the mask.
+class DensifyStats(FrameStats):
+    """One frame: pixels, measured (input pixels > 0), filled (estimated, not measured), empty
+    (no estimate), PNG values clipped at 256 m, and the densification time ``t_densify``
+    (seconds; never recorded)."""
 
-    Per-frame statistics: ``pixels``, ``measured`` (input pixels > 0), ``filled`` (estimated,
-    not measured), ``empty`` (no estimate), ``clipped`` (PNG values clipped at 256 m) and
-    the densification time ``t_densify`` (seconds; not recorded).
-    """
+    pixels: int
+    measured: int
+    filled: int
+    empty: int
+    clipped: int
+    t_densify: float | None = None
 
-    settings: DensifySettings
+
+@dataclass(frozen=True)
+class DensifyJob(BatchJob[DensifyInput]):
+    """``sparsetools densify`` (picklable): per frame read, densify, write the dense map and
+    the mask of measured pixels."""
+
+    command: ClassVar[str] = "densify"
+    noun: ClassVar[str] = "dense depth maps"
+    stats_type: ClassVar[type[FrameStats]] = DensifyStats
+
+    settings: DensifySettings = field(default_factory=DensifySettings)
     fmt: str = "png"
 
-    def __call__(self, task: FrameTask[DensifyInput]) -> dict:
+    def __post_init__(self) -> None:
+        check_choice(self.fmt, "--format", FORMATS)
+
+    def tasks(self, frames: list[Frame], out_dir: Path) -> list[FrameTask[DensifyInput]]:
+        """One task per map: ``OUT/<sequence>/<frame>.<fmt>``,
+        ``OUT/mask/<sequence>/<frame>.png``."""
+        if not frames:
+            raise ParameterError("no sparse depth maps given")
+        return [
+            FrameTask(
+                f.key,
+                DensifyInput(str(f.depth)),
+                {"depth": f.key.path(out_dir, f".{self.fmt}"),
+                 "mask": f.key.path(out_dir, ".png", prefix=MASK_DIR)},
+                (f.depth,),
+            )
+            for f in frames
+        ]  # fmt: skip
+
+    def record(self) -> dict:
+        return {**settings_dict(self.settings), "fmt": self.fmt}
+
+    def option_names(self) -> dict:
+        return {"fmt": "--format", "max_depth": "--inversion-offset"}
+
+    def __call__(self, task: FrameTask[DensifyInput]) -> DensifyStats:
         from ..io.dataset import read_depth_file
         from ..io.image import write_depth_png
         from ..ops.densify import densify
@@ -92,120 +124,33 @@ class DensifyJob:
                 np.save(fh, res.depth, allow_pickle=False)
         _write_mask(task.outputs["mask"], res.measured)
         estimated = int(np.count_nonzero(res.depth > 0))
-        measured = int(np.count_nonzero(res.measured))
-        filled = int(np.count_nonzero(res.filled))
-        return {
-            "pixels": int(res.depth.size),
-            "measured": measured,
-            "filled": filled,
-            "empty": int(res.depth.size) - estimated,
-            "clipped": int(clipped),
-            "t_densify": seconds,
-        }
-
-
-def sparse_maps(paths) -> dict[FrameKey, Path]:
-    """Sparse depth maps of every input path, by frame key (sorted).
-
-    Raises
-    ------
-    FormatError
-        A path without depth maps, or two inputs that are one frame.
-    """
-    from ..io.sources import index_input
-
-    paths = list(paths)
-    if not paths:
-        raise ParameterError("no sparse depth maps given")
-    found: dict[FrameKey, Path] = {}
-    for p in map(Path, paths):
-        for key, f in index_input(p, "sparse", option="SPARSE").files.items():
-            if key in found:
-                raise FormatError(
-                    f"{found[key]} and {f} are the same frame '{key}': give each once, or "
-                    "folders whose frames differ"
-                )
-            found[key] = f
-    return dict(sorted(found.items()))
-
-
-def densify_tasks(
-    maps: dict[FrameKey, Path], out_dir: str | os.PathLike, fmt: str
-) -> list[FrameTask[DensifyInput]]:
-    """One task per map: ``OUT/<sequence>/<frame>.<fmt>``, ``OUT/mask/<sequence>/<frame>.png``."""
-    out = Path(out_dir)
-    return [
-        FrameTask(
-            key,
-            DensifyInput(str(path)),
-            {"depth": key.path(out, f".{fmt}"), "mask": key.path(out, ".png", prefix=MASK_DIR)},
-            (path,),
+        return DensifyStats(
+            pixels=int(res.depth.size),
+            measured=int(np.count_nonzero(res.measured)),
+            filled=int(np.count_nonzero(res.filled)),
+            empty=int(res.depth.size) - estimated,
+            clipped=int(clipped),
+            t_densify=seconds,
         )
-        for key, path in maps.items()
-    ]
 
+    def finish(self, summary: RunSummary, tasks: list, out_dir: Path) -> dict:
+        """Totals: method, measured_pct, filled_pct (mean over frames of filled / pixels),
+        empty_pct, clipped, seconds_per_frame (densification alone, frames computed now) and
+        wall_seconds_per_frame (reading and writing included)."""
+        stats = [st for st in self.stats(summary) if st.pixels]
 
-def run_densify(
-    sparse,
-    out_dir: str | os.PathLike,
-    *,
-    settings: DensifySettings | None = None,
-    fmt: str = "png",
-    batch: Batch | None = None,
-) -> RunSummary:
-    """Densify every sparse map of ``sparse`` (files and folders).
+        def mean_pct(name: str) -> float:
+            values = [getattr(st, name) / st.pixels for st in stats]
+            return round(100.0 * float(np.mean(values)), 4) if values else 0.0
 
-    Parameters
-    ----------
-    sparse : list of path-like
-    out_dir : path-like
-    settings : DensifySettings, optional
-        Default: IP-Basic as in the paper.
-    fmt : {"png", "npy"}
-        Format of the dense maps (the masks are PNG).
-    batch : Batch, optional
-
-    Returns
-    -------
-    RunSummary
-        Totals: method, measured_pct, filled_pct (mean over frames of filled / pixels),
-        empty_pct, clipped, seconds_per_frame (densification alone, frames computed now)
-        and wall_seconds_per_frame (reading and writing included).
-    """
-    from .provenance import settings_dict
-
-    batch = batch or Batch()
-    settings = settings or DensifySettings()
-    check_choice(fmt, "--format", FORMATS)
-    paths = list(sparse)
-    maps = sparse_maps(paths)
-    out = check_output_dir(out_dir, [p for p in paths if Path(p).is_dir()])
-    tasks = densify_tasks(maps, out, fmt)
-    spec = RunSpec(
-        "densify",
-        out,
-        {**settings_dict(settings), "fmt": fmt},
-        noun="dense depth maps",
-        options={"fmt": "--format"},
-    )
-    summary = run_frames(DensifyJob(settings, fmt), tasks, batch=batch, spec=spec)
-    return summary.with_totals(_totals(summary, settings))
-
-
-def _totals(summary: RunSummary, settings: DensifySettings) -> dict:
-    ok, done = summary.ok, summary.done
-
-    def mean_pct(key: str) -> float:
-        values = [r.stats[key] / r.stats["pixels"] for r in ok if r.stats.get("pixels")]
-        return round(100.0 * float(np.mean(values)), 4) if values else 0.0
-
-    kernel = [r.stats["t_densify"] for r in done if "t_densify" in r.stats]
-    return {
-        "method": settings.method,
-        "measured_pct": mean_pct("measured"),
-        "filled_pct": mean_pct("filled"),
-        "empty_pct": mean_pct("empty"),
-        "clipped": int(summary.total("clipped")),
-        "seconds_per_frame": round(float(np.mean(kernel)), 5) if kernel else 0.0,
-        "wall_seconds_per_frame": round(summary.seconds / len(done), 5) if done else 0.0,
-    }
+        done = summary.done
+        kernel = [r.stats["t_densify"] for r in done if "t_densify" in r.stats]
+        return {
+            "method": self.settings.method,
+            "measured_pct": mean_pct("measured"),
+            "filled_pct": mean_pct("filled"),
+            "empty_pct": mean_pct("empty"),
+            "clipped": sum(st.clipped for st in self.stats(summary)),
+            "seconds_per_frame": round(float(np.mean(kernel)), 5) if kernel else 0.0,
+            "wall_seconds_per_frame": round(summary.seconds / len(done), 5) if done else 0.0,
+        }

@@ -11,9 +11,9 @@ reference or rounding is refused unless ``--overwrite``.
 from __future__ import annotations
 
 import json
-import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
@@ -21,18 +21,17 @@ from ..errors import ParameterError
 from ..io.atomic import atomic_path
 from ..io.sources import Frame
 from ..validate import check_choice, check_positive
-from .batch import Batch, RunSummary
-from .core import FrameTask, RunSpec, check_output_dir, run_frames
-from .lowlight import image_frames
+from .batch import RunSummary
+from .core import BatchJob, FrameStats, FrameTask
+from .provenance import settings_dict
 
 __all__ = [
     "LUT_FILE",
     "EqualizeInput",
     "EqualizeJob",
     "EqualizeSettings",
-    "equalize_tasks",
+    "EqualizeStats",
     "resolve_reference",
-    "run_equalize",
 ]
 
 LUT_FILE = "mcie_lut.json"
@@ -41,10 +40,14 @@ LUT_FILE = "mcie_lut.json"
 @dataclass(frozen=True)
 class EqualizeSettings:
     """What the equalised frames depend on: the clip limit, the reference frame and the
-    table arithmetic (``nearest`` or ``rnw``, :func:`sparsetools.ops.enhance.mcie_lut`)."""
+    table arithmetic (``nearest`` or ``rnw``, :func:`sparsetools.ops.enhance.mcie_lut`).
+
+    ``reference`` is a file, or the frame id / name / file name of one input ("": the first
+    input); the run records the file it resolves to.
+    """
 
     clip: float = 0.004
-    reference: str = field(default="", metadata={"option": "--reference"})
+    reference: str = field(default="", metadata={"option": "--reference-frame"})
     rounding: str = "nearest"
 
     def __post_init__(self) -> None:
@@ -52,6 +55,7 @@ class EqualizeSettings:
 
         check_positive(self.clip, "clip")
         check_choice(self.rounding, "rounding", ROUNDINGS)
+        object.__setattr__(self, "reference", str(self.reference or ""))
 
 
 @dataclass(frozen=True)
@@ -60,9 +64,9 @@ class EqualizeInput:
 
 
 def resolve_reference(reference, frames: list[Frame]) -> Path:
-    """The reference frame: a path, or the frame id / name / file name of one input
-    (default: the first)."""
-    if reference is None:
+    """The reference frame: a path, or the frame id / name of one input (default: the
+    first)."""
+    if not reference:
         return frames[0].image
     ref = Path(reference)
     if ref.is_file():
@@ -74,42 +78,78 @@ def resolve_reference(reference, frames: list[Frame]) -> Path:
     if len(matches) > 1:
         raise ParameterError(
             f"'{reference}' matches several inputs: {matches[0].image}, {matches[1].image}",
-            param="reference",
+            param="reference_frame",
         )
     raise ParameterError(
-        f"frame '{reference}' is neither a file nor the name of an input", param="reference"
+        f"frame '{reference}' is neither a file nor the name of an input", param="reference_frame"
     )
 
 
 @dataclass(frozen=True)
-class EqualizeJob:
-    """The per-frame job (picklable): read (grey becomes RGB, 16-bit is refused), map, write."""
+class EqualizeStats(FrameStats):
+    """One frame: mean grey level before and after the table."""
 
-    lut: np.ndarray
+    mean_before: float
+    mean_after: float
 
-    def __call__(self, task: FrameTask[EqualizeInput]) -> dict:
+
+@dataclass(frozen=True)
+class EqualizeJob(BatchJob[EqualizeInput]):
+    """``sparsetools equalize`` (picklable): one MCIE table, built by :meth:`planned` from the
+    reference frame, applied to every frame (grey becomes RGB, 16-bit is refused)."""
+
+    command: ClassVar[str] = "equalize"
+    noun: ClassVar[str] = "equalised frames"
+    stats_type: ClassVar[type[FrameStats]] = EqualizeStats
+
+    settings: EqualizeSettings = field(default_factory=EqualizeSettings)
+    reference: str | None = None
+    lut: np.ndarray | None = field(default=None, compare=False, repr=False)
+
+    def planned(self, frames: list[Frame]) -> EqualizeJob:
+        from ..io.image import read_image
+        from ..ops.enhance import mcie_lut
+
+        if not frames:
+            raise ParameterError("no images given")
+        ref = resolve_reference(self.settings.reference, frames)
+        s = self.settings
+        lut = mcie_lut(read_image(ref), clip=s.clip, rounding=s.rounding)
+        return replace(self, reference=str(ref), lut=lut)
+
+    def tasks(self, frames: list[Frame], out_dir: Path) -> list[FrameTask[EqualizeInput]]:
+        ref = Path(self.reference)
+        return [
+            FrameTask(f.key, EqualizeInput(str(f.image)), {"image": f.key.path(out_dir, ".png")},
+                      (f.image, ref))
+            for f in frames
+        ]  # fmt: skip
+
+    def record(self) -> dict:
+        s = self.settings
+        return settings_dict(replace(s, reference=str(Path(self.reference).resolve())))
+
+    def shared_outputs(self, out_dir: Path) -> tuple[Path, ...]:
+        return (out_dir / LUT_FILE,)
+
+    def __call__(self, task: FrameTask[EqualizeInput]) -> EqualizeStats:
         from ..io.image import read_image, write_image
         from ..ops.enhance import apply_lut
 
         image = read_image(task.inputs.image)
         out = apply_lut(image, self.lut)
         write_image(task.outputs["image"], out)
-        return {"mean_before": float(image.mean()), "mean_after": float(out.mean())}
+        return EqualizeStats(mean_before=float(image.mean()), mean_after=float(out.mean()))
 
-
-def equalize_tasks(
-    frames: list[Frame], out_dir: str | os.PathLike, reference: Path
-) -> list[FrameTask[EqualizeInput]]:
-    out = Path(out_dir)
-    return [
-        FrameTask(
-            f.key,
-            EqualizeInput(str(f.image)),
-            {"image": f.key.path(out, ".png")},
-            (f.image, reference),
-        )
-        for f in frames
-    ]
+    def finish(self, summary: RunSummary, tasks: list, out_dir: Path) -> dict:
+        """Write the table (``OUT/mcie_lut.json``); totals: ``reference``, ``rounding`` and
+        ``lut_file``."""
+        s = self.settings
+        lut_path = out_dir / LUT_FILE
+        doc = _lut_document(Path(self.reference), s.clip, s.rounding, self.lut)
+        with atomic_path(lut_path) as tmp:
+            tmp.write_text(json.dumps(doc) + "\n", encoding="utf-8")
+        return {"reference": self.reference, "rounding": s.rounding, "lut_file": str(lut_path)}
 
 
 def _lut_document(reference: Path, clip: float, rounding: str, lut: np.ndarray) -> dict:
@@ -120,54 +160,3 @@ def _lut_document(reference: Path, clip: float, rounding: str, lut: np.ndarray) 
         "rounding": rounding,
         "lut": [lut[:, c].tolist() for c in range(lut.shape[1])],
     }
-
-
-def run_equalize(
-    images,
-    out_dir: str | os.PathLike,
-    *,
-    clip: float = 0.004,
-    reference=None,
-    rounding: str = "nearest",
-    batch: Batch | None = None,
-) -> RunSummary:
-    """Equalise a sequence with one MCIE table built from the reference frame.
-
-    Parameters
-    ----------
-    images : list of path-like
-        Image files and/or folders.
-    out_dir : path-like
-    clip : float
-        Clip limit as a fraction of the reference's pixel count.
-    reference : path-like or str, optional
-        A file, or the frame id / name of one input (default: the first).
-    rounding : {"nearest", "rnw"}
-        Table arithmetic: rounded to nearest, or RNW's released integer version.
-    batch : Batch, optional
-
-    Returns
-    -------
-    RunSummary
-        Totals: ``reference``, ``rounding`` and ``lut_file``.
-    """
-    from ..io.image import read_image
-    from ..ops.enhance import mcie_lut
-
-    batch = batch or Batch()
-    frames = image_frames(images)
-    ref = resolve_reference(reference, frames)
-    settings = EqualizeSettings(clip=clip, reference=str(ref.resolve()), rounding=rounding)
-    out = check_output_dir(out_dir, [*map(str, images), str(ref)])
-    lut = mcie_lut(read_image(ref), clip=clip, rounding=rounding)
-    tasks = equalize_tasks(frames, out, ref)
-    spec = RunSpec(
-        "equalize", out, settings, noun="equalised frames", shared_outputs=(out / LUT_FILE,)
-    )
-    summary = run_frames(EqualizeJob(lut), tasks, batch=batch, spec=spec)
-    lut_path = out / LUT_FILE
-    with atomic_path(lut_path) as tmp:
-        tmp.write_text(json.dumps(_lut_document(ref, clip, rounding, lut)) + "\n", encoding="utf-8")
-    return summary.with_totals(
-        {"reference": str(ref), "rounding": rounding, "lut_file": str(lut_path)}
-    )

@@ -22,19 +22,26 @@ are never interpolated. A ``.pcd`` input is projected directly at the resized re
 from __future__ import annotations
 
 import logging
-import math
-import os
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
 from ..errors import FormatError, ParameterError
 from ..io.atomic import atomic_path
-from ..io.sources import Frame, FrameKey
-from ..validate import check_positive
-from .batch import Batch, RunSummary
-from .core import FrameTask, RunSpec, check_output_dir, run_frames
+from ..io.sources import Frame
+from ..validate import (
+    check_choice,
+    check_non_negative,
+    check_positive,
+    check_probability,
+    parse_size,
+)
+from .batch import RunSummary
+from .core import BatchJob, FrameStats, FrameTask
+from .provenance import settings_dict
 
 __all__ = [
     "CONF_FORMATS",
@@ -42,19 +49,16 @@ __all__ = [
     "JbfInput",
     "JbfJob",
     "JbfSettings",
+    "JbfStats",
     "format_intrinsic_table",
     "intrinsic_summary",
-    "jbf_tasks",
-    "radar_frames",
     "resize_sparse_depth",
-    "run_jbf_expand",
 ]
 
 log = logging.getLogger(__name__)
 
 METHODS = ("jbf", "height-extend")
 CONF_FORMATS = ("png", "npy")
-RADAR_SUFFIXES = (".png", ".pcd")
 
 
 @dataclass(frozen=True)
@@ -92,70 +96,28 @@ class JbfSettings:
     conf_format: str = "png"
     max_depth: float = 80.0
 
-    def check(self) -> None:
-        """Validate every option before any frame runs (one clear error, no partial output)."""
+    def __post_init__(self) -> None:
+        """Every option checked once, before any frame runs (one clear error, no output)."""
         from ..ops.jbf import CONFLICTS, KERNELS, RANGE_METRICS, pruning_radius
 
-        if self.method not in METHODS:
-            raise ParameterError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
-        if self.conf_format not in CONF_FORMATS:
-            raise ParameterError(f"confidence format must be png or npy, got {self.conf_format!r}")
-        for name in ("sigma_s", "sigma_r"):
-            v = float(getattr(self, name))
-            if not (math.isfinite(v) and v > 0):
-                raise ParameterError(f"{name} must be finite and > 0, got {v}")
-        if not (0.0 < float(self.threshold) <= 1.0):
-            raise ParameterError(f"threshold must be in (0, 1], got {self.threshold}")
-        if len(self.window_m) != 2 or not all(
-            math.isfinite(float(v)) and float(v) > 0 for v in self.window_m
-        ):
-            raise ParameterError(f"window must be two sizes > 0 in metres, got {self.window_m}")
-        if self.kernel not in KERNELS:
-            raise ParameterError(f"kernel must be one of {', '.join(KERNELS)}, got {self.kernel!r}")
-        if self.range_metric not in RANGE_METRICS:
-            raise ParameterError(f"range metric must be gray or rgb, got {self.range_metric!r}")
-        if self.conflict not in CONFLICTS:
-            raise ParameterError(f"conflict must be one of {', '.join(CONFLICTS)}")
-        for name in ("below_m", "above_m"):
-            v = float(getattr(self, name))
-            if not (math.isfinite(v) and v >= 0):
-                raise ParameterError(f"{name} must be finite and >= 0, got {v}")
-        if self.resize is not None and not (math.isfinite(self.resize) and self.resize > 0):
-            raise ParameterError(f"resize factor must be > 0, got {self.resize}")
-        if not (math.isfinite(self.max_depth) and self.max_depth > 0):
-            raise ParameterError(f"max_depth must be > 0, got {self.max_depth}")
+        check_choice(self.method, "method", METHODS)
+        check_choice(self.conf_format, "conf_format", CONF_FORMATS)
+        check_positive(self.sigma_s, "sigma_s")
+        check_positive(self.sigma_r, "sigma_r")
+        check_probability(self.threshold, "threshold")
+        w, h = parse_size(self.window_m, "window_m", integer=False)
+        object.__setattr__(self, "window_m", (w, h))
+        check_choice(self.kernel, "kernel", KERNELS)
+        check_choice(self.range_metric, "range_metric", RANGE_METRICS)
+        check_choice(self.conflict, "conflict", CONFLICTS)
+        check_non_negative(self.below_m, "below_m")
+        check_non_negative(self.above_m, "above_m")
+        check_positive(self.resize, "resize", allow_none=True)
+        check_positive(self.max_depth, "max_depth")
         pruning_radius(float(self.sigma_s), float(self.threshold))
 
 
 # -- inputs -------------------------------------------------------------------------------------
-
-
-def radar_frames(paths: list[str | os.PathLike]) -> list[Frame]:
-    """Radar inputs as frames: files as given, folders expanded to their ``*.png`` / ``*.pcd``.
-
-    In a folder, ``<frame>_sweep<k>.pcd`` (or ``.png``) is left out when ``<frame>.pcd`` (or
-    ``.png``) is there too: those are the single sweeps of a merged multi-sweep frame (the
-    layout ``synth-scene`` writes). A folder written by ``project`` is read through its record.
-    """
-    from ..io.sources import index_input, merge_frames
-    from ..io.sources.tree import index_tree
-
-    if not paths:
-        raise ParameterError("no radar inputs given")
-
-    def index(p: Path):
-        if p.is_file() and p.suffix.lower() not in RADAR_SUFFIXES:
-            raise FormatError(
-                f"{p}: not a radar input (expected a depth .png or a nuScenes radar .pcd)"
-            )
-        if p.is_dir() and not any(p.iterdir()):
-            raise FormatError(f"{p}: no radar depth PNG or .pcd file in this folder")
-        try:
-            return index_tree(p, RADAR_SUFFIXES, option="RADAR", role="depth")
-        except FormatError:
-            return index_input(p, "depth", option="RADAR")  # a KITTI depth-completion tree
-
-    return merge_frames((index(p) for p in map(Path, paths)), "depth")
 
 
 @dataclass(frozen=True)
@@ -166,34 +128,6 @@ class JbfInput:
     image: str
     calib: str | None = None
     lidar: str | None = None
-
-
-def jbf_tasks(
-    frames: list[Frame],
-    out_dir: str | os.PathLike,
-    settings: JbfSettings,
-    *,
-    lidar: dict[FrameKey, Path] | None = None,
-) -> list[FrameTask[JbfInput]]:
-    """One task per frame (``depth`` = the radar input, ``image``, optional ``calib``; LiDAR
-    depth maps by key); outputs ``OUT/<sequence>/<frame>.png`` and
-    ``OUT/<sequence>/<frame>_conf.png``."""
-    out = Path(out_dir)
-    tasks = []
-    for f in frames:
-        outputs = {"depth": f.key.path(out, ".png")}
-        if settings.confidence:
-            outputs["confidence"] = f.key.path(out, f"_conf.{settings.conf_format}")
-        lid = (lidar or {}).get(f.key)
-        inp = JbfInput(
-            radar=str(f.depth),
-            image=str(f.image),
-            calib=None if f.calib is None else str(f.calib),
-            lidar=None if lid is None else str(lid),
-        )
-        sources = tuple(p for p in (f.depth, f.image, f.calib, lid) if p is not None)
-        tasks.append(FrameTask(f.key, inp, outputs, sources))
-    return tasks
 
 
 # -- one frame ----------------------------------------------------------------------------------
@@ -236,18 +170,11 @@ def _resize_image(rgb: np.ndarray, size: tuple[int, int], scale: float) -> np.nd
     return cv2.resize(rgb, size, interpolation=interp)
 
 
-def _frame_calibration(path: str, image_size: tuple[int, int]):
-    from ..io.calib import load_calibration
+def _frame_calibration(inp: JbfInput):
+    """The frame's calibration, checked against its image's size."""
+    from ..io.calib import frame_calibration
 
-    calib = load_calibration(path)
-    if calib.width is not None and calib.height is not None:
-        if (calib.width, calib.height) != image_size:
-            raise ParameterError(
-                f"calibration {path} is for {calib.width}x{calib.height} images but the image "
-                f"is {image_size[0]}x{image_size[1]}"
-            )
-        return calib
-    return calib.with_size(*image_size)
+    return frame_calibration(calib_path=inp.calib, image=inp.image, what="expanded map")
 
 
 def _write_confidence(path: Path, confidence: np.ndarray, fmt: str) -> None:
@@ -267,15 +194,75 @@ def _write_confidence(path: Path, confidence: np.ndarray, fmt: str) -> None:
 
 
 @dataclass(frozen=True)
-class JbfJob:
-    """The per-frame job of ``jbf-expand`` (picklable): read, (resize,) expand, write; returns
-    seeds, points and, with LiDAR, the intrinsic errors."""
+class JbfStats(FrameStats):
+    """One frame: radar seeds, points of the expanded map, PNG pixels clipped at 256 m and,
+    with LiDAR, the intrinsic error of each method (rows ``raw``, the expansion,
+    ``height-extend``; :func:`sparsetools.ops.intrinsic.intrinsic_error`)."""
 
-    settings: JbfSettings
+    seeds: int
+    points: int
+    clipped: int = 0
+    intrinsic: Mapping | None = None
+
+
+@dataclass(frozen=True)
+class JbfJob(BatchJob[JbfInput]):
+    """``sparsetools jbf-expand`` (picklable): per frame read, (resize,) expand, write.
+
+    Attributes
+    ----------
+    settings : JbfSettings
+    fx, fy : float, optional, pixels
+        Focal lengths of the (unresized) images, when the frames have no calibration.
+    """
+
+    command: ClassVar[str] = "jbf-expand"
+    noun: ClassVar[str] = "expanded radar maps"
+    stats_type: ClassVar[type[FrameStats]] = JbfStats
+
+    settings: JbfSettings = field(default_factory=JbfSettings)
     fx: float | None = None
     fy: float | None = None
 
-    def __call__(self, task: FrameTask[JbfInput]) -> dict:
+    def __post_init__(self) -> None:
+        check_positive(self.fx, "fx", allow_none=True)
+        check_positive(self.fy, "fy", allow_none=True)
+
+    def planned(self, frames: list[Frame]) -> JbfJob:
+        """The focal lengths come from one place: the frames' calibration or fx, fy."""
+        if not frames:
+            raise ParameterError("no radar inputs given")
+        has_calib = frames[0].calib is not None
+        if not has_calib and any(f.depth.suffix.lower() == ".pcd" for f in frames):
+            raise ParameterError("radar .pcd inputs need --calib (the radar-to-camera calibration)")
+        if not has_calib and (self.fx is None or self.fy is None):
+            raise ParameterError("give the focal lengths: --fx and --fy, or --calib")
+        if has_calib and (self.fx is not None or self.fy is not None):
+            raise ParameterError("give either --calib or --fx/--fy, not both")
+        return self
+
+    def tasks(self, frames: list[Frame], out_dir: Path) -> list[FrameTask[JbfInput]]:
+        """One task per frame: ``OUT/<sequence>/<frame>.png`` and, unless disabled,
+        ``OUT/<sequence>/<frame>_conf.png`` (or ``.npy``)."""
+        tasks = []
+        for f in frames:
+            outputs = {"depth": f.key.path(out_dir, ".png")}
+            if self.settings.confidence:
+                outputs["confidence"] = f.key.path(out_dir, f"_conf.{self.settings.conf_format}")
+            inp = JbfInput(
+                radar=str(f.depth),
+                image=str(f.image),
+                calib=None if f.calib is None else str(f.calib),
+                lidar=None if f.gt is None else str(f.gt),
+            )
+            sources = tuple(p for p in (f.depth, f.image, f.calib, f.gt) if p is not None)
+            tasks.append(FrameTask(f.key, inp, outputs, sources))
+        return tasks
+
+    def record(self) -> dict:
+        return {**settings_dict(self.settings), "fx": self.fx, "fy": self.fy}
+
+    def __call__(self, task: FrameTask[JbfInput]) -> JbfStats:
         from ..io.image import read_depth_png, read_image, write_depth_png
         from ..ops.intrinsic import intrinsic_error
         from ..ops.jbf import height_extend, jbf_expand
@@ -284,7 +271,7 @@ class JbfJob:
         rgb = read_image(inp.image)
         size0 = (rgb.shape[1], rgb.shape[0])
         scale = s.resize if s.resize is not None and s.resize != 1.0 else None
-        calib = _frame_calibration(inp.calib, size0) if inp.calib else None
+        calib = _frame_calibration(inp) if inp.calib else None
         fx, fy = (calib.fx, calib.fy) if calib is not None else (float(self.fx), float(self.fy))
         if scale is not None:
             size = (max(1, round(size0[0] * scale)), max(1, round(size0[1] * scale)))
@@ -302,12 +289,7 @@ class JbfJob:
             cam = calib.resized(scale).with_size(*size) if scale is not None else calib
             radar = project_points(points, cam)
         else:
-            radar = read_depth_png(radar_path)
-            if (radar.shape[1], radar.shape[0]) != size0:
-                raise ParameterError(
-                    f"radar depth {radar_path} is {radar.shape[1]}x{radar.shape[0]} but the "
-                    f"image is {size0[0]}x{size0[1]}: they must have the same size"
-                )
+            radar = _read_map(radar_path, size0, "radar depth", read_depth_png)
             if scale is not None:
                 radar = resize_sparse_depth(radar, scale, size)
 
@@ -329,153 +311,51 @@ class JbfJob:
             depth = height_extend(radar, fy=fy, below_m=s.below_m, above_m=s.above_m)
             confidence = (depth > 0).astype(np.float32)
 
-        stats = {
-            "seeds": int(np.count_nonzero(radar > 0)),
-            "points": int(np.count_nonzero(depth > 0)),
-        }
+        intrinsic = None
         if inp.lidar:
-            lidar = read_depth_png(inp.lidar)
-            if (lidar.shape[1], lidar.shape[0]) != size0:
-                raise ParameterError(
-                    f"LiDAR depth {inp.lidar} is {lidar.shape[1]}x{lidar.shape[0]} but the "
-                    f"image is {size0[0]}x{size0[1]}"
-                )
+            lidar = _read_map(Path(inp.lidar), size0, "LiDAR depth", read_depth_png)
             if scale is not None:
                 lidar = resize_sparse_depth(lidar, scale, size)
-            rows = {"raw": intrinsic_error(radar, lidar, max_depth=s.max_depth)}
+            intrinsic = {"raw": intrinsic_error(radar, lidar, max_depth=s.max_depth)}
             name = s.kernel if s.method == "jbf" else "height-extend"
-            rows[name] = intrinsic_error(depth, lidar, max_depth=s.max_depth)
+            intrinsic[name] = intrinsic_error(depth, lidar, max_depth=s.max_depth)
             if s.method == "jbf":
                 baseline = height_extend(radar, fy=fy, below_m=s.below_m, above_m=s.above_m)
-                rows["height-extend"] = intrinsic_error(baseline, lidar, max_depth=s.max_depth)
-            stats["intrinsic"] = rows
+                intrinsic["height-extend"] = intrinsic_error(baseline, lidar, max_depth=s.max_depth)
 
-        stats["clipped"] = write_depth_png(task.outputs["depth"], depth)
+        clipped = write_depth_png(task.outputs["depth"], depth)
         if s.confidence:
             _write_confidence(task.outputs["confidence"], confidence, s.conf_format)
-        return stats
-
-
-# -- run and report -----------------------------------------------------------------------------
-
-
-def run_jbf_expand(
-    radar: list[str | os.PathLike],
-    *,
-    image: str | os.PathLike,
-    out_dir: str | os.PathLike,
-    settings: JbfSettings = JbfSettings(),
-    calib: str | os.PathLike | None = None,
-    fx: float | None = None,
-    fy: float | None = None,
-    lidar: str | os.PathLike | None = None,
-    batch: Batch | None = None,
-) -> RunSummary:
-    """Expand every radar frame (see the module docstring).
-
-    Parameters
-    ----------
-    radar : list of path-like
-        Radar depth PNGs and/or radar ``.pcd`` files, or folders of them.
-    image : path-like
-        Camera image (one frame) or folder of images matched by frame.
-    out_dir : path-like
-    settings : JbfSettings
-    calib : path-like, optional
-        Calibration file (shared) or folder of per-frame ``.json|.txt``: gives fx, fy and,
-        for ``.pcd`` inputs, the radar-to-camera projection.
-    fx, fy : float, optional, pixels
-        Focal lengths of the (unresized) image, instead of a calibration.
-    lidar : path-like, optional
-        LiDAR depth PNG (one frame) or folder matched by frame, for the intrinsic error.
-    batch : Batch, optional
-
-    Returns
-    -------
-    RunSummary
-        Totals: mean_seeds, mean_points, expansion_factor and, with LiDAR, intrinsic_error
-        (per frame and mean; frames up to date included, from the folder's record).
-    """
-    from ..io.sources import attach, index_input, match_keys
-
-    batch = batch or Batch()
-    settings.check()
-    if calib is None:
-        if fx is None or fy is None:
-            raise ParameterError("give the focal lengths: --fx and --fy, or --calib")
-        check_positive(fx, "fx")
-        check_positive(fy, "fy")
-    elif fx is not None or fy is not None:
-        raise ParameterError("give either --calib or --fx/--fy, not both")
-    frames = radar_frames(list(radar))
-    if any(f.depth.suffix.lower() == ".pcd" for f in frames) and calib is None:
-        raise ParameterError("radar .pcd inputs need --calib (the radar-to-camera calibration)")
-    frames, missing = attach(
-        frames, image, "image", role="image", option="--image", shared_ok=False
-    )
-    if missing:
-        raise FormatError(_missing(frames, "image", image, missing))
-    frames, missing = attach(frames, calib, "calib", role="calib", option="--calib")
-    if missing:
-        raise FormatError(_missing(frames, "calib", calib, missing))
-    lidar_files = None
-    if lidar is not None:
-        lp = Path(lidar)
-        if lp.is_file():
-            if len(frames) > 1:
-                raise ParameterError(
-                    f"{lp} is one LiDAR depth file but {len(frames)} radar frames were given: "
-                    "pass a folder of LiDAR depth maps matched by frame",
-                    param="lidar",
-                )
-            lidar_files = {frames[0].key: lp}
-        else:
-            index = index_input(lp, "depth", option="--lidar")
-            lidar_files = match_keys([f.key for f in frames], index.files)
-            if len(lidar_files) < len(frames):
-                absent = next(f.key for f in frames if f.key not in lidar_files)
-                raise FormatError(
-                    f"--lidar: {lp}: no LiDAR depth map for frame {absent} "
-                    f"({len(frames) - len(lidar_files)} of {len(frames)} missing)"
-                )
-    tasks = jbf_tasks(frames, out_dir, settings, lidar=lidar_files)
-    inputs = [Path(p) for p in (*radar, image, calib, lidar) if p is not None]
-    out = check_output_dir(out_dir, [p for p in inputs if p.is_dir()])
-    from .provenance import option_names, settings_dict
-
-    spec = RunSpec(
-        "jbf-expand",
-        out,
-        {**settings_dict(settings), "fx": fx, "fy": fy},
-        noun="expanded radar maps",
-        options=option_names(settings),
-    )
-    summary = run_frames(JbfJob(settings, fx, fy), tasks, batch=batch, spec=spec)
-    return _with_totals(summary, lidar is not None)
-
-
-def _missing(frames: list[Frame], field: str, path, n: int) -> str:
-    f = next(f for f in frames if not Path(getattr(f, field)).exists())
-    return (
-        f"--{field}: {path}: no {'image' if field == 'image' else 'calibration'} for frame "
-        f"{f.key} (expected {getattr(f, field)}; {n} of {len(frames)} frames lack one)"
-    )
-
-
-def _with_totals(summary: RunSummary, with_lidar: bool) -> RunSummary:
-    ok = summary.ok
-    totals: dict = {}
-    if ok:
-        seeds = summary.total("seeds") / len(ok)
-        points = summary.total("points") / len(ok)
-        totals.update(
-            mean_seeds=seeds,
-            mean_points=points,
-            expansion_factor=points / seeds if seeds else 0.0,
+        return JbfStats(
+            seeds=int(np.count_nonzero(radar > 0)),
+            points=int(np.count_nonzero(depth > 0)),
+            clipped=clipped,
+            intrinsic=intrinsic,
         )
-    if with_lidar:
-        totals["intrinsic_error"] = intrinsic_summary(summary)
-    return summary.with_totals(totals)
+
+    def finish(self, summary: RunSummary, tasks: list, out_dir: Path) -> dict:
+        """Totals: mean_seeds, mean_points, expansion_factor and, with LiDAR,
+        intrinsic_error (per frame and mean; frames up to date included, from the record)."""
+        stats = self.stats(summary)
+        totals: dict = {}
+        if stats:
+            seeds = sum(st.seeds for st in stats) / len(stats)
+            points = sum(st.points for st in stats) / len(stats)
+            totals.update(mean_seeds=seeds, mean_points=points,
+                          expansion_factor=points / seeds if seeds else 0.0)  # fmt: skip
+        if any(t.inputs.lidar for t in tasks):
+            totals["intrinsic_error"] = intrinsic_summary(summary)
+        return totals
+
+
+def _read_map(path: Path, size: tuple[int, int], what: str, read) -> np.ndarray:
+    depth = read(path)
+    if (depth.shape[1], depth.shape[0]) != size:
+        raise ParameterError(
+            f"{what} {path} is {depth.shape[1]}x{depth.shape[0]} but the image is "
+            f"{size[0]}x{size[1]}: they must have the same size"
+        )
+    return depth
 
 
 def intrinsic_summary(summary: RunSummary) -> dict:

@@ -13,24 +13,25 @@ from __future__ import annotations
 import json
 import logging
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
-from ..errors import FormatError, ParameterError
+from ..errors import FormatError
 from ..io.atomic import atomic_path
-from ..io.sources import IMAGE_SUFFIXES, Frame, FrameKey
-from .batch import Batch, RunSummary
-from .core import FrameTask, RunSpec, check_output_dir, run_frames
+from ..io.sidecar import read_sidecar
+from ..io.sources import Frame, FrameKey
+from ..ops.lowlight import LowLightParams
+from ..validate import check_int_range
+from .batch import RunSummary
+from .core import BatchJob, FrameStats, FrameTask
 
 __all__ = [
     "MAX_VARIANTS",
     "LowLightInput",
     "LowLightJob",
     "LowLightSettings",
-    "image_frames",
-    "lowlight_tasks",
-    "read_sidecar",
-    "run_lowlight",
+    "LowLightStats",
     "write_manifest",
 ]
 
@@ -42,37 +43,28 @@ RECORDS = "records"
 MAX_VARIANTS = 1000
 
 
-def image_frames(paths, *, option: str = "IMAGE") -> list[Frame]:
-    """Images given as files and/or folders (a folder tree: ``DIR/<sequence>/<frame>.png``;
-    a folder written by sparsetools: its recorded images), as frames sorted by key.
-
-    Raises
-    ------
-    FormatError
-        A path does not exist, a folder holds no image, a file is not a PNG/JPEG, or two
-        files are the same frame.
-    """
-    from ..io.sources import index_input, merge_frames
-
-    paths = list(paths)
-    if not paths:
-        raise ParameterError("no images given")
-
-    def index(p: Path):
-        if p.is_file() and p.suffix.lower() not in IMAGE_SUFFIXES:
-            raise FormatError(f"{p}: not a PNG or JPEG image")
-        return index_input(p, "image", option=option)
-
-    return merge_frames((index(p) for p in map(Path, paths)), "image")
-
-
 @dataclass(frozen=True)
 class LowLightSettings:
-    """What a run's night images depend on (the same for every frame)."""
+    """What a run's night images depend on (the same for every frame).
 
-    seed: int
-    variants: int
-    params: dict
+    Attributes
+    ----------
+    seed : int
+        Global seed: output ``k`` of frame ``f`` draws from ``frame_rng(seed, "<f>:<k>")``.
+    variants : int
+        Night versions per image (1..:data:`MAX_VARIANTS`).
+    params : LowLightParams
+    """
+
+    seed: int = 0
+    variants: int = 1
+    params: LowLightParams = field(default_factory=LowLightParams)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "seed", check_int_range(self.seed, "seed"))
+        object.__setattr__(
+            self, "variants", check_int_range(self.variants, "variants", low=1, high=MAX_VARIANTS)
+        )
 
 
 @dataclass(frozen=True)
@@ -86,34 +78,6 @@ class LowLightInput:
 
 def _output_name(frame: str, variant: int, variants: int) -> str:
     return f"{frame}.png" if variants == 1 else f"{frame}_v{variant}.png"
-
-
-def lowlight_tasks(
-    frames: list[Frame], out_dir: str | os.PathLike, settings: LowLightSettings
-) -> list[FrameTask[LowLightInput]]:
-    """One task per source image (all its variants): ``OUT/<sequence>/<frame>[_v<k>].png``
-    and the record sidecars ``OUT/records/<sequence>/<frame>[_v<k>].json``."""
-    out = Path(out_dir)
-    tasks = []
-    for f in frames:
-        outputs = {}
-        for k in range(settings.variants):
-            name = _output_name(f.key.frame, k, settings.variants)
-            stem = name[: -len(".png")]
-            outputs[f"image{k}"] = FrameKey(f.key.sequence, stem).path(out, ".png")
-            outputs[f"record{k}"] = FrameKey(f.key.sequence, stem).path(
-                out, ".json", prefix=RECORDS
-            )
-        if settings.variants == 1:
-            outputs = {"image": outputs["image0"], "record": outputs["record0"]}
-        inp = LowLightInput(
-            image=str(f.image),
-            depth=None if f.depth is None else str(f.depth),
-            calib=None if f.calib is None else str(f.calib),
-        )
-        sources = tuple(p for p in (f.image, f.depth, f.calib) if p is not None)
-        tasks.append(FrameTask(f.key, inp, outputs, sources))
-    return tasks
 
 
 def _images_and_records(task: FrameTask) -> tuple[list[Path], list[Path]]:
@@ -139,16 +103,74 @@ def flare_cache_dir() -> Path | None:
 
 
 @dataclass(frozen=True)
-class LowLightJob:
-    """The per-frame job of ``lowlight-synth`` (picklable): read, synthesise every variant,
-    write the night PNGs and their record sidecars.
+class LowLightStats(FrameStats):
+    """One source image: night images written, flares placed in them."""
+
+    images: int
+    flares: int
+
+
+@dataclass(frozen=True)
+class LowLightJob(BatchJob[LowLightInput]):
+    """``sparsetools lowlight-synth`` (picklable): per image read, synthesise every variant,
+    write the night PNGs and their record sidecars, then the manifest of all of them.
 
     The flare bank (about 1 s to build) comes from the on-disk cache of
     :func:`flare_cache_dir` (the same arrays, built once per machine and loaded in 0.1 s), so
     a process, and every worker of a pool, does not build its own.
     """
 
-    settings: LowLightSettings
+    command: ClassVar[str] = "lowlight-synth"
+    noun: ClassVar[str] = "night images"
+    stats_type: ClassVar[type[FrameStats]] = LowLightStats
+
+    settings: LowLightSettings = field(default_factory=LowLightSettings)
+
+    def tasks(self, frames: list[Frame], out_dir: Path) -> list[FrameTask[LowLightInput]]:
+        """One task per source image (all its variants): ``OUT/<sequence>/<frame>[_v<k>].png``
+        and the record sidecars ``OUT/records/<sequence>/<frame>[_v<k>].json``."""
+        variants = self.settings.variants
+        tasks = []
+        for f in frames:
+            outputs = {}
+            for k in range(variants):
+                stem = _output_name(f.key.frame, k, variants)[: -len(".png")]
+                outputs[f"image{k}"] = FrameKey(f.key.sequence, stem).path(out_dir, ".png")
+                outputs[f"record{k}"] = FrameKey(f.key.sequence, stem).path(
+                    out_dir, ".json", prefix=RECORDS
+                )
+            if variants == 1:
+                outputs = {"image": outputs["image0"], "record": outputs["record0"]}
+            inp = LowLightInput(
+                image=str(f.image),
+                depth=None if f.depth is None else str(f.depth),
+                calib=None if f.calib is None else str(f.calib),
+            )
+            sources = tuple(p for p in (f.image, f.depth, f.calib) if p is not None)
+            tasks.append(FrameTask(f.key, inp, outputs, sources))
+        return tasks
+
+    def record(self) -> dict:
+        s = self.settings
+        return {"seed": s.seed, "variants": s.variants, **s.params.to_dict()}
+
+    def option_names(self) -> dict:
+        return {"camera": "--noise-profile"}
+
+    def shared_outputs(self, out_dir: Path) -> tuple[Path, ...]:
+        return (out_dir / MANIFEST,)
+
+    def finish(self, summary: RunSummary, tasks: list, out_dir: Path) -> dict:
+        """Rebuild the manifest; totals: ``images`` written, ``flares`` placed,
+        ``manifest_rows``, ``manifest``."""
+        _, rows = write_manifest(out_dir, tasks)
+        stats = self.stats(summary)
+        return {
+            "images": sum(st.images for st in stats),
+            "flares": sum(st.flares for st in stats),
+            "manifest_rows": rows,
+            "manifest": str(out_dir / MANIFEST),
+        }
 
     def prepare(self) -> None:
         """Load what every frame uses (the noise model's SciPy, the flare bank, the codecs)
@@ -157,10 +179,10 @@ class LowLightJob:
         import numpy as np
 
         from ..io.image import import_cv2
-        from ..ops.lowlight import LowLightParams, lowlight
+        from ..ops.lowlight import lowlight
 
         import_cv2()
-        params = LowLightParams(**self.settings.params)
+        params = self.settings.params
         lowlight(np.zeros((8, 8, 3), np.uint8), rng=0, params=params, bank=self.flare_bank(params))
 
     def flare_bank(self, params):
@@ -177,16 +199,17 @@ class LowLightJob:
     def config(self) -> dict:
         """JSON-normalised settings (tuples as lists), as stored in every sidecar."""
         s = self.settings
-        return json.loads(json.dumps({"seed": s.seed, "variants": s.variants, "params": s.params}))
+        doc = {"seed": s.seed, "variants": s.variants, "params": s.params.to_dict()}
+        return json.loads(json.dumps(doc))
 
     def __call__(self, task: FrameTask[LowLightInput]) -> dict:
         from ..io.calib import load_calibration
         from ..io.image import read_depth_png, read_image, write_image
-        from ..ops.lowlight import LowLightParams, lowlight
+        from ..ops.lowlight import lowlight
         from ..random import frame_rng
 
         inp, s = task.inputs, self.settings
-        params = LowLightParams(**s.params)
+        params = s.params
         image = read_image(inp.image)  # grey -> RGB; 16-bit refused with a clear message
         depth = read_depth_png(inp.depth) if inp.depth else None
         if depth is not None and depth.shape != image.shape[:2]:
@@ -211,7 +234,7 @@ class LowLightJob:
             with atomic_path(rec_out) as tmp:
                 tmp.write_text(json.dumps(row, sort_keys=True) + "\n", encoding="utf-8")
             flares += record.flare_count
-        return {"images": len(images), "flares": flares}
+        return LowLightStats(images=len(images), flares=flares)
 
 
 def _manifest_schema():
@@ -232,29 +255,6 @@ def _manifest_schema():
         ("color_bias", pa.list_(pa.float64())), ("noise_table_row", pa.int32()),
         ("record_json", pa.string()),
     ])  # fmt: skip
-
-
-def read_sidecar(path: str | os.PathLike) -> dict:
-    """The JSON object of a record sidecar (``OUT/records/...json``).
-
-    Raises
-    ------
-    FormatError
-        Unreadable, not JSON, or not an object.
-    """
-    path = Path(path)
-    try:
-        side = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise FormatError(
-            f"{path}: unreadable record sidecar ({exc}); rerun with --overwrite"
-        ) from exc
-    if not isinstance(side, dict):
-        raise FormatError(f"{path}: not a record sidecar (a JSON object); rerun with --overwrite")
-    return side
-
-
-_read_sidecar = read_sidecar  # the name tests/robustness/test_fuzz.py imports
 
 
 def write_manifest(out_dir: str | os.PathLike, tasks: list[FrameTask]) -> tuple[Path, int]:
@@ -286,73 +286,3 @@ def write_manifest(out_dir: str | os.PathLike, tasks: list[FrameTask]) -> tuple[
     with atomic_path(path) as tmp:
         pq.write_table(table, tmp)
     return path, len(rows)
-
-
-def run_lowlight(
-    images,
-    out_dir: str | os.PathLike,
-    *,
-    depth=None,
-    calib=None,
-    seed: int = 0,
-    variants: int = 1,
-    params=None,
-    batch: Batch | None = None,
-) -> RunSummary:
-    """Synthesise night images for a batch.
-
-    Parameters
-    ----------
-    images : list of path-like
-        Image files and/or folders.
-    out_dir : path-like
-    depth : path-like, optional
-        A depth PNG (only with a single image) or a folder of depth maps matched by frame.
-    calib : path-like, optional
-        A calibration shared by every frame, or a folder of per-frame files.
-    seed, variants : int
-    params : LowLightParams, optional
-    batch : Batch, optional
-
-    Returns
-    -------
-    RunSummary
-        Totals: ``images`` written, ``flares`` placed, ``manifest_rows``, ``manifest``.
-    """
-    from ..io.sources import attach
-    from ..ops.lowlight import LowLightParams
-    from ..validate import check_int_range
-
-    batch = batch or Batch()
-    params = params or LowLightParams()
-    check_int_range(variants, "variants", low=1, high=MAX_VARIANTS)
-    frames = image_frames(images)
-    frames, missing = attach(
-        frames, depth, "depth", role="depth", option="--depth", shared_ok=False
-    )
-    if missing:
-        absent = [str(f.depth) for f in frames if not Path(f.depth).is_file()]
-        more = f" (and {len(absent) - 3} more)" if len(absent) > 3 else ""
-        raise FormatError(f"no depth map for some images: {', '.join(absent[:3])}{more}")
-    frames, _ = attach(frames, calib, "calib", role="calib", option="--calib")
-    inputs = [*map(str, images)] + [str(p) for p in (depth, calib) if p is not None]
-    out = check_output_dir(out_dir, inputs)
-    settings = LowLightSettings(int(seed), int(variants), params.to_dict())
-    tasks = lowlight_tasks(frames, out, settings)
-    if calib is not None and depth is None:
-        log.warning("--calib without --depth: the calibration is only used to place flares in 3-D")
-    spec = RunSpec(
-        "lowlight-synth", out, {"seed": settings.seed, "variants": settings.variants,
-                                **settings.params},
-        noun="night images", shared_outputs=(out / MANIFEST,),
-    )  # fmt: skip
-    summary = run_frames(LowLightJob(settings), tasks, batch=batch, spec=spec, desc="lowlight")
-    _, rows = write_manifest(out, tasks)
-    return summary.with_totals(
-        {
-            "images": int(summary.total("images")),
-            "flares": int(summary.total("flares")),
-            "manifest_rows": rows,
-            "manifest": str(out / MANIFEST),
-        }
-    )

@@ -15,26 +15,27 @@ and ``OUT/mask/<sequence>/<frame>.png`` (255 = valid, 0 = ``F < eps``).
 from __future__ import annotations
 
 import json
-import os
-from collections.abc import Iterator
-from dataclasses import dataclass
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
 from ..errors import FormatError, ParameterError
 from ..io.atomic import atomic_path
 from ..io.sources import Frame, FrameKey
-from .batch import Batch, RunSummary
-from .core import FrameTask, RunSpec, check_output_dir, run_frames
+from ..validate import check_odd, check_positive
+from .batch import RunSummary
+from .core import BatchJob, FrameStats, FrameTask
 from .provenance import settings_dict
 
 __all__ = [
     "UnderwaterJob",
     "UnderwaterSegment",
     "UnderwaterSettings",
-    "run_underwater",
-    "underwater_tasks",
+    "UnderwaterStats",
+    "segment_tasks",
 ]
 
 SETTINGS_FILE = "underwater.json"
@@ -64,12 +65,37 @@ def segment_length(window: int) -> int:
 
 @dataclass(frozen=True)
 class UnderwaterSettings:
-    """What the compensated frames depend on (besides their input frames)."""
+    """What the compensated frames depend on (besides their input frames).
 
-    window: int = 31
+    Attributes
+    ----------
+    window : int
+        Seafloor frames in each temporal median (odd; ``--median-window``).
+    eps : float
+        Smallest factor F kept; pixels below are masked invalid.
+    white_balance : bool
+        Gray-world white balance of every output.
+    a_ref : tuple of float, optional
+        Reference albedo (one value or R, G, B; grey levels); None: each sequence's median of
+        ``M - B`` over its first window.
+    """
+
+    window: int = field(default=31, metadata={"option": "--median-window"})
     eps: float = 1e-3
     white_balance: bool = False
     a_ref: tuple[float, ...] | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "window", check_odd(self.window, "median_window"))
+        object.__setattr__(self, "eps", check_positive(self.eps, "eps"))
+        object.__setattr__(self, "white_balance", bool(self.white_balance))
+        if self.a_ref is not None:
+            values = tuple(check_positive(v, "a_ref") for v in np.atleast_1d(self.a_ref))
+            if len(values) not in (1, 3):
+                raise ParameterError(
+                    f"expected one value or three (R, G, B), got {len(values)}", param="a_ref"
+                )
+            object.__setattr__(self, "a_ref", values)
 
 
 @dataclass(frozen=True)
@@ -84,16 +110,19 @@ class UnderwaterSegment:
         Indices into ``paths`` of the frames written.
     a_ref : tuple of float
         The sequence's reference albedo per channel.
+    backscatter : str
+        The run's backscatter file (``OUT/backscatter.npy``).
     """
 
     paths: tuple[str, ...]
     emit: tuple[int, int]
     a_ref: tuple[float, ...]
+    backscatter: str = ""
 
 
-def underwater_tasks(
+def segment_tasks(
     frames: list[Frame],
-    out_dir: str | os.PathLike,
+    out_dir: Path,
     *,
     window: int,
     a_ref: tuple[float, ...],
@@ -105,7 +134,6 @@ def underwater_tasks(
     the frames A_ref was measured on), so a changed input recomputes exactly the segments
     that see it.
     """
-    out = Path(out_dir)
     n_frames = len(frames)
     h = window // 2
     seg = segment_length(window)
@@ -117,11 +145,12 @@ def underwater_tasks(
         hi = min(max(e - 1 - h, 0), n_frames - window) + window
         outputs = {}
         for f in frames[s:e]:
-            outputs[f"image@{f.id}"] = f.key.path(out, ".png")
-            outputs[f"mask@{f.id}"] = f.key.path(out, ".png", prefix=MASK_DIR)
+            outputs[f"image@{f.id}"] = f.key.path(out_dir, ".png")
+            outputs[f"mask@{f.id}"] = f.key.path(out_dir, ".png", prefix=MASK_DIR)
         key = FrameKey(frames[s].key.sequence, f"{frames[s].key.frame}..{frames[e - 1].key.frame}")
         sources = tuple(f.image for f in frames[lo:hi]) + tuple(extra_sources)
-        inp = UnderwaterSegment(tuple(str(f.image) for f in frames[lo:hi]), (s - lo, e - lo), a_ref)
+        inp = UnderwaterSegment(tuple(str(f.image) for f in frames[lo:hi]), (s - lo, e - lo), a_ref,
+                                str(out_dir / BACKSCATTER_FILE))  # fmt: skip
         tasks.append(FrameTask(key, inp, outputs, tuple(dict.fromkeys(sources))))
     return tasks
 
@@ -137,18 +166,106 @@ def _write_png(path, array: np.ndarray) -> None:
 
 
 @dataclass(frozen=True)
-class UnderwaterJob:
-    """The per-task job (picklable): stream one segment (with context), write its frames."""
+class UnderwaterStats(FrameStats):
+    """One segment: images written, pixels masked invalid (``F < eps``)."""
 
-    settings: UnderwaterSettings
-    backscatter_file: str
+    images: int
+    invalid_pixels: int
 
-    def __call__(self, task: FrameTask[UnderwaterSegment]) -> dict:
+
+@dataclass(frozen=True)
+class UnderwaterJob(BatchJob[UnderwaterSegment]):
+    """``sparsetools underwater`` (picklable): the backscatter and each sequence's A_ref are
+    fixed by :meth:`planned`; a task streams one segment (with context) and writes its
+    frames.
+
+    Attributes
+    ----------
+    settings : UnderwaterSettings
+    water : tuple of Path
+        The water-only frames (one backscatter for every sequence).
+    backscatter : (H, W, C) float array, set by :meth:`planned`
+    a_refs : dict of sequence -> tuple of float, set by :meth:`planned`
+    """
+
+    command: ClassVar[str] = "underwater"
+    noun: ClassVar[str] = "compensated frames"
+    stats_type: ClassVar[type[FrameStats]] = UnderwaterStats
+    #: workers read the backscatter from its file: the array is not sent with every task
+    parent_only: ClassVar[tuple[str, ...]] = ("backscatter",)
+
+    settings: UnderwaterSettings = field(default_factory=UnderwaterSettings)
+    water: tuple[Path, ...] = ()
+    backscatter: np.ndarray | None = field(default=None, compare=False, repr=False)
+    a_refs: Mapping[str, tuple[float, ...]] = field(default_factory=dict)
+    frames_total: int = 0
+
+    def planned(self, frames: list[Frame]) -> UnderwaterJob:
+        """Measure the backscatter (median of the water frames) and each sequence's A_ref
+        (its first window), checking sizes and sequence lengths first."""
+        from ..ops.underwater import UnderwaterCompensator
+
+        st = self.settings
+        if not self.water:
+            raise FormatError("no water-only frames: give --water")
+        if not frames:
+            raise ParameterError("no seafloor frames given")
+        for seq, fs in _sequences(frames).items():
+            if len(fs) < st.window:
+                name = f"sequence {seq}" if seq else "the sequence"
+                raise ParameterError(
+                    f"only {len(fs)} seafloor frame(s) in {name}, fewer than the median window "
+                    f"of {st.window} (use --median-window {max(1, len(fs) - (1 - len(fs) % 2))} "
+                    "or fewer)"
+                )
+        comp = UnderwaterCompensator(_frames([str(p) for p in self.water]), window=st.window,
+                                     a_ref=None if st.a_ref is None else list(st.a_ref),
+                                     eps=st.eps, white_balance=st.white_balance)  # fmt: skip
+        shape = _first_shape(frames[0].image)
+        if comp.backscatter.shape[:2] != shape[:2]:
+            raise FormatError(
+                f"water-only frames are {comp.backscatter.shape[1]}x{comp.backscatter.shape[0]} "
+                f"but the seafloor frames are {shape[1]}x{shape[0]}"
+            )
+        a_refs = {}
+        for seq, fs in _sequences(frames).items():
+            if st.a_ref is None:
+                median = comp.first_window_median(_frames([str(f.image) for f in fs[: st.window]]))
+                a_refs[seq] = tuple(float(v) for v in comp.reference_albedo(median))
+            else:
+                a_refs[seq] = tuple(float(v) for v in np.broadcast_to(st.a_ref, (3,))[: shape[2]])
+        return replace(self, backscatter=comp.backscatter, a_refs=a_refs,
+                       frames_total=len(frames))  # fmt: skip
+
+    def tasks(self, frames: list[Frame], out_dir: Path) -> list[FrameTask[UnderwaterSegment]]:
+        """Segments of consecutive frames of each sequence (:func:`segment_tasks`)."""
+        st = self.settings
+        tasks = []
+        for seq, fs in _sequences(frames).items():
+            a_sources = tuple(f.image for f in fs[: st.window]) if st.a_ref is None else ()
+            tasks.extend(segment_tasks(fs, out_dir, window=st.window, a_ref=self.a_refs[seq],
+                                       extra_sources=tuple(self.water) + a_sources))  # fmt: skip
+        return tasks
+
+    def shared_outputs(self, out_dir: Path) -> tuple[Path, ...]:
+        return (out_dir / BACKSCATTER_FILE, out_dir / SETTINGS_FILE)
+
+    def before(self, out_dir: Path, batch) -> None:
+        """Write the backscatter (read by every task) and the run's ``underwater.json``."""
+        _save_if_changed(out_dir / BACKSCATTER_FILE, self.backscatter)
+        doc = {**settings_dict(self.settings),
+               "a_ref_per_sequence": {k: list(v) for k, v in self.a_refs.items()},
+               "frames": self.frames_total, "water_frames": len(self.water),
+               "backscatter_file": BACKSCATTER_FILE}  # fmt: skip
+        with atomic_path(out_dir / SETTINGS_FILE) as tmp:
+            tmp.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+
+    def __call__(self, task: FrameTask[UnderwaterSegment]) -> UnderwaterStats:
         from ..ops.underwater import UnderwaterCompensator
 
         st, seg = self.settings, task.inputs
         comp = UnderwaterCompensator.from_backscatter(
-            np.load(self.backscatter_file),
+            np.load(seg.backscatter),
             window=st.window,
             a_ref=list(seg.a_ref),
             eps=st.eps,
@@ -166,7 +283,28 @@ class UnderwaterJob:
             _write_png(images[k], np.ascontiguousarray(rgb[:, :, ::-1]))
             _write_png(masks[k], valid.astype(np.uint8) * 255)
             invalid += int(valid.size - np.count_nonzero(valid))
-        return {"images": len(images), "invalid_pixels": invalid}
+        return UnderwaterStats(images=len(images), invalid_pixels=invalid)
+
+    def finish(self, summary: RunSummary, tasks: list, out_dir: Path) -> dict:
+        """Totals: ``segments``, ``frames``, ``images``, ``window``, ``a_ref`` (per sequence),
+        ``invalid_pixels``."""
+        stats = self.stats(summary)
+        a_refs = {k: list(v) for k, v in self.a_refs.items()}
+        return {
+            "segments": len(summary.results),
+            "frames": self.frames_total,
+            "images": sum(st.images for st in stats),
+            "window": self.settings.window,
+            "a_ref": a_refs[next(iter(a_refs))] if len(a_refs) == 1 else a_refs,
+            "invalid_pixels": sum(st.invalid_pixels for st in stats),
+        }
+
+
+def _sequences(frames: list[Frame]) -> dict[str, list[Frame]]:
+    sequences: dict[str, list[Frame]] = {}
+    for f in frames:
+        sequences.setdefault(f.key.sequence, []).append(f)
+    return sequences
 
 
 def _save_if_changed(path: Path, array: np.ndarray) -> None:
@@ -180,118 +318,6 @@ def _save_if_changed(path: Path, array: np.ndarray) -> None:
         return
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)
-
-
-def run_underwater(
-    seafloor,
-    water,
-    out_dir: str | os.PathLike,
-    *,
-    window: int = 31,
-    eps: float = 1e-3,
-    a_ref=None,
-    white_balance: bool = False,
-    batch: Batch | None = None,
-) -> RunSummary:
-    """Compensate the lighting of seafloor sequences.
-
-    Parameters
-    ----------
-    seafloor : path-like or list of path-like
-        Folder(s)/files of seafloor frames; each sequence (sub-folder) is one dive, in time
-        order (frame names sorted).
-    water : path-like or list of path-like
-        Water-only frames (folder or files): one backscatter for every sequence.
-    out_dir : path-like
-    window, eps, a_ref, white_balance
-        See :class:`~sparsetools.ops.underwater.UnderwaterCompensator`. ``a_ref`` None: each
-        sequence's per-channel median of ``M - B`` over its first window.
-    batch : Batch, optional
-
-    Returns
-    -------
-    RunSummary
-        Tasks are segments of consecutive frames. Totals: ``segments``, ``frames``,
-        ``images``, ``window``, ``a_ref`` (per sequence), ``invalid_pixels``.
-    """
-    from ..ops.underwater import UnderwaterCompensator
-    from .lowlight import image_frames
-
-    batch = batch or Batch()
-    seafloor = [seafloor] if isinstance(seafloor, (str, os.PathLike)) else list(seafloor)
-    water = [water] if isinstance(water, (str, os.PathLike)) else list(water)
-    try:
-        water_frames = image_frames(water, option="--water")
-    except (FormatError, ParameterError) as exc:
-        raise FormatError(f"no water-only frames: {exc}") from exc
-    frames = image_frames(seafloor, option="SEAFLOOR")
-    sequences: dict[str, list[Frame]] = {}
-    for f in frames:
-        sequences.setdefault(f.key.sequence, []).append(f)
-    for seq, fs in sequences.items():
-        if len(fs) < window:
-            name = f"sequence {seq}" if seq else "the sequence"
-            raise ParameterError(
-                f"only {len(fs)} seafloor frame(s) in {name}, fewer than the median window of "
-                f"{window} (use --window {max(1, len(fs) - (1 - len(fs) % 2))} or fewer)"
-            )
-    settings = UnderwaterSettings(
-        window=int(window), eps=float(eps), white_balance=bool(white_balance),
-        a_ref=None if a_ref is None else tuple(float(v) for v in np.atleast_1d(a_ref)),
-    )  # fmt: skip
-    out = check_output_dir(out_dir, [*map(str, seafloor), *map(str, water)])
-    water_paths = [str(f.image) for f in water_frames]
-    comp = UnderwaterCompensator(_frames(water_paths), window=window, a_ref=a_ref, eps=eps,
-                                 white_balance=white_balance)  # fmt: skip
-    shape = _first_shape(frames[0].image)
-    if comp.backscatter.shape[:2] != shape[:2]:
-        raise FormatError(
-            f"water-only frames are {comp.backscatter.shape[1]}x{comp.backscatter.shape[0]} but "
-            f"the seafloor frames are {shape[1]}x{shape[0]}"
-        )
-    backscatter = out / BACKSCATTER_FILE
-    tasks, a_refs = [], {}
-    water_sources = tuple(f.image for f in water_frames)
-    for seq, fs in sequences.items():
-        if settings.a_ref is None:
-            median = comp.first_window_median(_frames([str(f.image) for f in fs[:window]]))
-            seq_a_ref = tuple(float(v) for v in comp.reference_albedo(median))
-            a_sources = tuple(f.image for f in fs[:window])
-        else:
-            seq_a_ref = tuple(float(v) for v in np.broadcast_to(settings.a_ref, (3,))[: shape[2]])
-            a_sources = ()
-        a_refs[seq] = list(seq_a_ref)
-        tasks.extend(
-            underwater_tasks(fs, out, window=window, a_ref=seq_a_ref,
-                             extra_sources=water_sources + a_sources)
-        )  # fmt: skip
-    spec = RunSpec(
-        "underwater", out, settings, noun="compensated frames",
-        shared_outputs=(out / BACKSCATTER_FILE, out / SETTINGS_FILE),
-    )  # fmt: skip
-    doc = {**settings_dict(settings), "a_ref_per_sequence": a_refs, "frames": len(frames),
-           "water_frames": len(water_frames), "backscatter_file": BACKSCATTER_FILE}  # fmt: skip
-
-    def prepare():
-        _save_if_changed(backscatter, comp.backscatter)
-        with atomic_path(out / SETTINGS_FILE) as tmp:
-            tmp.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
-
-    summary = run_frames(
-        UnderwaterJob(settings, str(backscatter)), tasks, batch=batch, spec=spec,
-        before=prepare,
-    )  # fmt: skip
-    n_tasks = len(summary.results)
-    return summary.with_totals(
-        {
-            "segments": n_tasks,
-            "frames": len(frames),
-            "images": int(summary.total("images")),
-            "window": int(window),
-            "a_ref": a_refs[next(iter(a_refs))] if len(a_refs) == 1 else a_refs,
-            "invalid_pixels": int(summary.total("invalid_pixels")),
-        }
-    )
 
 
 def _first_shape(path: Path) -> tuple[int, int, int]:

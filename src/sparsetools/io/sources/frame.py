@@ -108,6 +108,8 @@ class Frame:
     gt : Path, optional
         A reference depth map of the frame (ground truth, the LiDAR map radar is compared
         with).
+    mask : Path, optional
+        Moving-object mask of the frame (PNG, non-zero = moving).
     calib : Path, optional
         Calibration file, or a KITTI raw date folder holding the calibration pair.
     calibration : Calibration, optional
@@ -128,6 +130,7 @@ class Frame:
     image: Path | None = None
     depth: Path | None = None
     gt: Path | None = None
+    mask: Path | None = None
     calib: Path | None = None
     calibration: object | None = field(default=None, compare=False, repr=False)
     pose: tuple[float, ...] | None = field(default=None, compare=False, repr=False)
@@ -142,7 +145,9 @@ class Frame:
     def files(self) -> tuple[Path, ...]:
         """Every input file of the frame (for resume identity and input-vs-output checks)."""
         out = [
-            p for p in (self.cloud, self.image, self.depth, self.gt, self.calib) if p is not None
+            p
+            for p in (self.cloud, self.image, self.depth, self.gt, self.mask, self.calib)
+            if p is not None
         ]
         out.extend(s.path for s in self.sweeps)
         out.extend(self.extra_inputs)

@@ -42,8 +42,10 @@ from .frame import Frame, FrameKey
 
 __all__ = [
     "POSES_FRAMES",
+    "AccumulationInputs",
     "PoseAttachment",
     "accumulation_frames",
+    "accumulation_inputs",
     "attach_poses",
     "is_synthetic_video",
     "moving_masks",
@@ -446,3 +448,59 @@ def attach_poses(
         out.append(replace(f, pose=_flat(T), extra_inputs=extra))
         kinds.append(kind)
     return PoseAttachment(tuple(out), tuple(kinds), missing)
+
+
+@dataclass(frozen=True)
+class AccumulationInputs:
+    """The frames of an ``accumulate`` run, each with its pose (or none, for ICP), its
+    calibration and its moving-object mask, and where the poses came from."""
+
+    frames: list[Frame]
+    pose_source: str
+
+
+def accumulation_inputs(
+    paths: list[str | os.PathLike],
+    *,
+    calib: str | os.PathLike | None = None,
+    image: str | os.PathLike | None = None,
+    poses: str | os.PathLike | None = None,
+    poses_frame: str = "auto",
+    icp: bool = False,
+    mask: str | os.PathLike | None = None,
+    camera: int = 2,
+) -> AccumulationInputs:
+    """:func:`accumulation_frames` with the poses attached (``icp``: none, they are registered
+    later) and the masks matched by frame.
+
+    Raises
+    ------
+    ParameterError
+        No frame, a frame without calibration, or ``poses`` with ``icp``.
+    FormatError
+        A frame without a pose (and no ``icp``) or without a mask.
+    """
+    frames = accumulation_frames(paths, calib=calib, image=image, camera=camera)
+    if not frames:
+        raise ParameterError("no frames to accumulate")
+    no_calib = [f for f in frames if f.calib is None and f.calibration is None]
+    if no_calib:
+        raise ParameterError(
+            f"no calibration for frame {no_calib[0].id} ({no_calib[0].cloud}): give --calib "
+            "(a file, a KITTI raw date folder or per-frame files)", param="--calib")  # fmt: skip
+    if icp:
+        if poses is not None:
+            raise ParameterError("give --poses or --icp, not both", param="--icp")
+        source = "icp"
+    else:
+        att = attach_poses(frames, poses, poses_frame=poses_frame, camera=camera)
+        if att.missing:
+            key, why = next(iter(att.missing.items()))
+            raise FormatError(
+                f"no pose for frame {key} ({why}; {len(att.missing)} of {len(frames)} frames "
+                "lack one): give --poses (a poses.txt or a folder of them) or --icp")  # fmt: skip
+        frames, source = list(att.frames), att.source
+    if mask is not None:
+        masks = moving_masks(frames, mask)
+        frames = [replace(f, mask=masks[f.key]) for f in frames]
+    return AccumulationInputs(frames, source)
