@@ -38,7 +38,7 @@ bench: setup
 	$(PY) benchmarks/run_all.py
 
 sample-data: setup
-	$(VENV)/bin/sparsetools synth-scene sample_data/synthetic --seed 0 --frames 3 --overwrite
+	$(VENV)/bin/sparsetools synth-scene -o sample_data/synthetic --seed 0 --frames 3 --overwrite
 
 clean:
 	rm -rf out .pytest_cache build

@@ -73,7 +73,7 @@ def kitti_png(depth: np.ndarray) -> np.ndarray:
 @pytest.fixture(scope="module")
 def video(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("video") / "video"
-    r = run("synth-scene", out, "--video", "--static", "--sequences", 2, "--frames", N_FRAMES,
+    r = run("synth-scene", "-o", out, "--video", "--static", "--sequences", 2, "--frames", N_FRAMES,
             "--image-size", f"{W}x{H}", "--seed", 3)  # fmt: skip
     assert r.exit_code == 0, r.stderr
     return out
@@ -133,7 +133,15 @@ def test_exact_poses_give_the_library_map_and_windows_stay_in_their_sequence(vid
 def test_camera_poses_file_matches_the_velodyne_poses(video, tmp_path):
     """KITTI odometry style camera poses, converted with Tr_velo_to_cam, give the same maps."""
     seq = video / "seq_0000"
-    args = [seq / "velodyne", "--calib", seq / "calib", "--image", seq / "image_2", "--neighbours", 1]
+    args = [
+        seq / "velodyne",
+        "--calib",
+        seq / "calib",
+        "--image",
+        seq / "image_2",
+        "--neighbours",
+        1,
+    ]
     a = summary_of(run("accumulate", *args, "--poses", seq / "poses.txt", "-o", tmp_path / "cam",
                        "--json"))  # fmt: skip
     b = summary_of(run("accumulate", *args, "--poses", seq / "poses_velodyne.txt", "-o",
@@ -245,7 +253,9 @@ def test_kitti_raw_oxts_poses(video, tmp_path):
     # packet 0 (the Mercator scale and origin) of every frame
     p3 = drive / "oxts" / "data" / f"{names[3]}.txt"
     p3.write_text(p3.read_text().replace(" 4 11 6 6 6", " 4 12 6 6 6"))
-    again = summary_of(run("accumulate", drive, "-o", tmp_path / "acc", "--neighbours", 2, "--json"))
+    again = summary_of(
+        run("accumulate", drive, "-o", tmp_path / "acc", "--neighbours", 2, "--json")
+    )
     assert again["recomputed"] == 4 and again["skipped_existing"] == 1
 
 

@@ -403,7 +403,16 @@ def test_underwater_recovers_generator_albedo(scene, tmp_path):
 def test_underwater_resume_and_settings(scene, tmp_path):
     uw = scene / "underwater"
     out = tmp_path / "o"
-    args = ["underwater", uw / "seafloor", "--water", uw / "water", "-o", out, "--median-window", "5"]
+    args = [
+        "underwater",
+        uw / "seafloor",
+        "--water",
+        uw / "water",
+        "-o",
+        out,
+        "--median-window",
+        "5",
+    ]
     assert run(*args).exit_code == 0
     before = _hashes(out)
     (out / "000020.png").unlink()
@@ -424,7 +433,9 @@ def test_underwater_bad_input(scene, tmp_path):
     empty.mkdir()
     line = _one_error_line(run("underwater", uw / "seafloor", "--water", empty, "-o", out))
     assert "no water-only frames" in line
-    r = run("underwater", uw / "seafloor", "--water", uw / "water", "-o", out, "--median-window", "4")
+    r = run(
+        "underwater", uw / "seafloor", "--water", uw / "water", "-o", out, "--median-window", "4"
+    )
     assert r.exit_code == 2 and "odd" in r.output
     r = run("underwater", uw / "seafloor", "--water", uw / "water", "-o", out, "--a-ref", "1,-2,3")
     assert r.exit_code == 2

@@ -62,6 +62,6 @@ def test_debug_shows_the_exception(monkeypatch):
 
 def test_usage_error_is_exit_2():
     r = CliRunner().invoke(cli, ["synth-scene"])
-    assert r.exit_code == 2 and "Missing argument" in r.stderr
+    assert r.exit_code == 2 and "Missing option" in r.stderr
     r = CliRunner().invoke(cli, ["no-such-command"])
     assert r.exit_code == 2

@@ -17,9 +17,9 @@ vars:
   scene: ${out}/scene
 steps:
   - name: scene
-    run: synth-scene ${scene} --frames ${frames} --image-size 64x24 --underwater-frames 0 --seed 3
+    run: synth-scene -o ${scene} --frames ${frames} --image-size 64x24 --underwater-frames 0 --seed 3
   - name: again
-    run: [sparsetools, synth-scene, "${scene}", --frames, "${frames}", --image-size, 64x24, --underwater-frames, "0", --seed, "3", --overwrite]
+    run: [sparsetools, synth-scene, -o, "${scene}", --frames, "${frames}", --image-size, 64x24, --underwater-frames, "0", --seed, "3", --overwrite]
 """
 
 
@@ -27,16 +27,16 @@ def test_variables_and_both_run_forms(tmp_path):
     (tmp_path / "c.yaml").write_text(CONFIG)
     wf = load_workflow(tmp_path / "c.yaml", out_dir=tmp_path / "o", overrides={"frames": "2"})
     assert wf.steps[1].run == [*wf.steps[0].run, "--overwrite"]
-    assert wf.steps[0].run[:2] == ["synth-scene", str(tmp_path / "o" / "scene")]
-    assert wf.steps[0].run[3] == "2"
+    assert wf.steps[0].run[:3] == ["synth-scene", "-o", str(tmp_path / "o" / "scene")]
+    assert wf.steps[0].run[4] == "2"
 
 
 def test_toml_config(tmp_path):
     (tmp_path / "c.toml").write_text(
-        'name = "t"\n[[steps]]\nname = "a"\nrun = "synth-scene ${out}/x"\n'
+        'name = "t"\n[[steps]]\nname = "a"\nrun = "synth-scene -o ${out}/x"\n'
     )
     wf = load_workflow(tmp_path / "c.toml", out_dir="O")
-    assert wf.steps[0].run == ["synth-scene", "O/x"]
+    assert wf.steps[0].run == ["synth-scene", "-o", "O/x"]
 
 
 @pytest.mark.parametrize(
@@ -56,8 +56,8 @@ def test_bad_configs(tmp_path, text, message):
 
 def test_run_writes_report_and_stops_at_failure(tmp_path):
     (tmp_path / "c.yaml").write_text(
-        CONFIG + "  - name: broken\n    run: synth-scene ${out}/bad --frames 0\n"
-        "  - name: never\n    run: synth-scene ${out}/never\n"
+        CONFIG + "  - name: broken\n    run: synth-scene -o ${out}/bad --frames 0\n"
+        "  - name: never\n    run: synth-scene -o ${out}/never\n"
     )
     wf = load_workflow(tmp_path / "c.yaml", out_dir=tmp_path / "o")
     with pytest.raises(ParameterError, match="step 'broken' failed"):

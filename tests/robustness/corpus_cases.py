@@ -1229,37 +1229,37 @@ def _(tmp):
 @case("synth-scene/out-is-a-file", match="not a folder")
 def _(tmp):
     write(OUT(tmp), "x")
-    return Setup(["synth-scene", OUT(tmp), "--frames", "1", "--image-size", "32x16",
+    return Setup(["synth-scene", "-o", OUT(tmp), "--frames", "1", "--image-size", "32x16",
                   "--underwater-frames", "0"])  # fmt: skip
 
 
 @case("synth-scene/out-not-empty", match="not empty")
 def _(tmp):
     write(OUT(tmp) / "mine.txt", "x")
-    return Setup(["synth-scene", OUT(tmp), "--frames", "1", "--image-size", "32x16",
+    return Setup(["synth-scene", "-o", OUT(tmp), "--frames", "1", "--image-size", "32x16",
                   "--underwater-frames", "0"])  # fmt: skip
 
 
 @case("synth-scene/check-folder-without-scene-json", match="scene.json")
 def _(tmp):
     (IN(tmp) / "scene").mkdir(parents=True)
-    return Setup(["synth-scene", OUT(tmp), "--check", IN(tmp) / "scene"])
+    return Setup(["synth-scene", "-o", OUT(tmp), "--check", IN(tmp) / "scene"])
 
 
 @case("synth-scene/check-scene-json-garbage", match="scene.json")
 def _(tmp):
     write(IN(tmp) / "scene" / "scene.json", b"\x00\xff{")
-    return Setup(["synth-scene", OUT(tmp), "--check", IN(tmp) / "scene"])
+    return Setup(["synth-scene", "-o", OUT(tmp), "--check", IN(tmp) / "scene"])
 
 
 @case("synth-scene/image-size-zero", expect="usage", match="positive")
 def _(tmp):
-    return Setup(["synth-scene", OUT(tmp), "--image-size", "0x16"])
+    return Setup(["synth-scene", "-o", OUT(tmp), "--image-size", "0x16"])
 
 
 @case("synth-scene/out-uncreatable", match="cannot create")
 def _(tmp):
-    return Setup(["synth-scene", UNCREATABLE, "--frames", "1", "--image-size", "32x16",
+    return Setup(["synth-scene", "-o", UNCREATABLE, "--frames", "1", "--image-size", "32x16",
                   "--underwater-frames", "0"], out=tmp / "nothing")  # fmt: skip
 
 

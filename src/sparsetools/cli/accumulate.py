@@ -159,7 +159,7 @@ def accumulate(
 
     \b
     Examples:
-      sparsetools synth-scene out/video --video --static --sequences 1 --frames 12
+      sparsetools synth-scene -o out/video --video --static --sequences 1 --frames 12
       sparsetools accumulate out/video -o out/acc --neighbours 5
       sparsetools accumulate ../shared/data/real/kitti-raw-sequence-2011_09_26 \\
           --icp --icp-min-range 20 --neighbours 5 -o out/acc_kitti

@@ -90,7 +90,7 @@ def dataset():
 
     \b
     Example:
-      sparsetools synth-scene out/scene --frames 4 --underwater-frames 0
+      sparsetools synth-scene -o out/scene --frames 4 --underwater-frames 0
       sparsetools dataset build -o out/ds --rgb out/scene/image_2 \\
           --sparse out/scene/depth_gt --calib out/scene/calib
       sparsetools dataset info out/ds
@@ -439,13 +439,14 @@ def export(maps, out_dir, layout, name, split_from, default_split, batch, as_jso
       sparsetools dataset export out/depth4 -o out/kitti_dc4 --name velodyne_raw_4beam \\
           --split-from /data/kitti_dc/data_depth_velodyne
     """
-    from ..pipeline.export import ExportSettings, drive_splits, export_kitti_dc
+    from ..io.sources import depth_frames
+    from ..pipeline import run_job
+    from ..pipeline.export import ExportJob, ExportSettings, drive_splits
 
     splits = drive_splits(split_from) if split_from is not None else {}
-    summary = export_kitti_dc(
-        maps, out_dir, ExportSettings(layout=layout, name=name, splits=splits),
-        split=default_split, batch=batch,
-    )  # fmt: skip
+    job = ExportJob(ExportSettings(layout=layout, name=name, splits=splits), default_split)
+    frames = depth_frames([maps], role="depth", option="MAPS")
+    summary = run_job(job, frames, out_dir, batch=batch, inputs=[maps])
     emit_summary(summary, as_json=as_json, title=f"maps exported to {out_dir}")
 
 

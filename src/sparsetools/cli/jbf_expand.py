@@ -147,7 +147,7 @@ def jbf_expand(
 
     \b
     Example:
-      sparsetools synth-scene out/scene --frames 2 --underwater-frames 0
+      sparsetools synth-scene -o out/scene --frames 2 --underwater-frames 0
       sparsetools jbf-expand out/scene/radar --calib out/scene/calib_radar \\
           --image out/scene/image_2 --lidar out/scene/depth_gt -o out/jbf
       sparsetools jbf-expand radar/000000.png --image 000000.png --fx 721.5 --fy 721.5 \\

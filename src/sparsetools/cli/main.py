@@ -97,7 +97,7 @@ def cli(ctx, verbose, quiet, debug):
 
     \b
     Typical flow:
-      sparsetools synth-scene out/scene --frames 3          # sample data with ground truth
+      sparsetools synth-scene -o out/scene --frames 3          # sample data with ground truth
       sparsetools project out/scene/velodyne --calib out/scene/calib -o out/depth
       sparsetools beams out/scene/velodyne --n 4 -o out/beams4
     Every command has --help with a worked example.

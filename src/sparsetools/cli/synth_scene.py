@@ -7,7 +7,14 @@ from pathlib import Path
 import click
 from click.core import ParameterSource
 
-from .options import emit_summary, json_option, quiet_debug_options, size_wxh
+from .options import (
+    emit_summary,
+    json_option,
+    output_dir_option,
+    quiet_debug_options,
+    size_wxh,
+    warn_deprecated,
+)
 
 #: Defaults of --frames and --image-size in video mode (when not given).
 VIDEO_FRAMES, VIDEO_SIZE = 30, (416, 128)
@@ -16,7 +23,12 @@ _SINGLE_ONLY = ("underwater_frames", "stem_prefix")
 
 
 @click.command("synth-scene")
-@click.argument("out_dir", type=click.Path(path_type=Path))
+@click.argument("legacy_out", required=False, metavar="", type=click.Path(path_type=Path))
+@output_dir_option(
+    required=False,
+    help="Output folder (a folder this command made with the same options is kept as it is; "
+    "other options are refused unless --overwrite).",
+)
 @click.option("--seed", type=int, default=0, show_default=True, help="Scene layout and noise seed.")
 @click.option(
     "--frames",
@@ -95,6 +107,7 @@ _SINGLE_ONLY = ("underwater_frames", "stem_prefix")
 @json_option
 @quiet_debug_options
 def synth_scene(
+    legacy_out,
     out_dir,
     seed,
     frames,
@@ -124,14 +137,22 @@ def synth_scene(
 
     \b
     Example:
-      sparsetools synth-scene out/scene --seed 0 --frames 3
-      sparsetools synth-scene out/small --frames 200 --image-size 320x96 --underwater-frames 0
-      sparsetools synth-scene out/check --check sample_data/synthetic   # reproducible?
-      sparsetools synth-scene out/video --video --sequences 4 --frames 30 --image-size 416x128
+      sparsetools synth-scene -o out/scene --seed 0 --frames 3
+      sparsetools synth-scene -o out/small --frames 200 --image-size 320x96 --underwater-frames 0
+      sparsetools synth-scene -o out/check --check sample_data/synthetic   # reproducible?
+      sparsetools synth-scene -o out/video --video --sequences 4 --frames 30 --image-size 416x128
     """
     from ..pipeline.synth_scene import run_synth_scene
 
     ctx = click.get_current_context()
+    if legacy_out is not None:
+        if out_dir is not None:
+            raise click.UsageError("give the output folder once, as -o OUT")
+        warn_deprecated("synth-scene OUT_DIR is now synth-scene -o OUT_DIR (the old form goes "
+                        "in 0.4)")  # fmt: skip
+        out_dir = legacy_out
+    if out_dir is None:
+        raise click.UsageError("Missing option '-o' / '--out'.")
 
     def given(name: str) -> bool:
         return ctx.get_parameter_source(name) not in (ParameterSource.DEFAULT, None)

@@ -7,10 +7,11 @@ from pathlib import Path
 import click
 
 from .options import (
+    deprecated,
     image_option,
-    max_depth_option,
     output_dir_option,
     overwrite_option,
+    positive,
     quiet_debug_options,
 )
 
@@ -27,7 +28,16 @@ def _labels_callback(ctx, param, value):
 )
 @image_option(help="Camera image under the points (default: black).")
 @output_dir_option(file=True, help="Output picture (.png or .jpg); an up-to-date picture is kept.")
-@max_depth_option(default=80.0, help="Depth (m) shown in red; 0 m is blue (turbo).")
+@click.option(
+    "--color-max",
+    type=float,
+    default=80.0,
+    show_default=True,
+    callback=positive,
+    metavar="METRES",
+    help="Top of the colour scale: this depth (m) is red, 0 m blue (turbo); farther points "
+    "are drawn red too.",
+)
 @click.option(
     "--dilate",
     type=click.IntRange(min=0, max=50),
@@ -49,12 +59,13 @@ def _labels_callback(ctx, param, value):
 )
 @click.option("--no-colorbar", is_flag=True, help="Leave out the colour bar.")
 @overwrite_option(help="Replace OUT even if it was not written by viz.")
+@deprecated("--max-depth", "--color-max", command="viz", dest="color_max")
 @quiet_debug_options
 def viz(
     depth,
     image,
     out_dir,
-    max_depth,
+    color_max,
     dilate,
     side_by_side,
     horizontal,
@@ -62,7 +73,7 @@ def viz(
     no_colorbar,
     overwrite,
 ):
-    """Colour sparse depth blue (0 m) to red (--max-depth) over a camera image.
+    """Colour sparse depth blue (0 m) to red (--color-max) over a camera image.
 
     DEPTH is a KITTI uint16 depth PNG or a .npy of metres; with several DEPTH the panels are
     stacked (labelled) over the same image, e.g. raw vs expanded, or 1/4/16 beams.
@@ -86,7 +97,7 @@ def viz(
     elif labels == [""]:
         labels = None
     settings = VizSettings(
-        max_depth=max_depth,
+        max_depth=color_max,
         dilate=dilate,
         horizontal=horizontal,
         labels=None if labels is None else tuple(labels),

@@ -1,6 +1,6 @@
 """Camera images at a map's resolution: resized and cropped, with their adjusted intrinsics.
 
-A depth map projected with ``--resize S --crop TOP,LEFT,H,W`` needs the camera image made the
+A depth map projected with ``--resize S --crop WxH+LEFT+TOP`` needs the camera image made the
 same way (and its intrinsics, METHODS.md section 0) before a dataset can pair them. Per frame
 this job writes ``OUT/<sequence>/<frame>.png`` (OpenCV area interpolation when shrinking,
 bilinear when enlarging, then the crop) and ``OUT/calib/<sequence>/<frame>.json``: the
@@ -9,18 +9,17 @@ frame's calibration resized and cropped exactly as :mod:`.project` does.
 
 from __future__ import annotations
 
-import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 from ..calibration import Calibration
 from ..errors import FormatError, ParameterError
 from ..io.sources import Frame
 from ..validate import check_positive, parse_crop
-from .batch import Batch, RunSummary
-from .core import FrameTask, RunSpec, check_output_dir, run_frames
+from .core import BatchJob, FrameStats, FrameTask
 
-__all__ = ["CameraImageInput", "CameraImageJob", "CameraImageSettings", "run_camera_images"]
+__all__ = ["CameraImageInput", "CameraImageJob", "CameraImageSettings", "CameraImageStats"]
 
 
 @dataclass(frozen=True)
@@ -43,12 +42,37 @@ class CameraImageInput:
 
 
 @dataclass(frozen=True)
-class CameraImageJob:
+class CameraImageStats(FrameStats):
+    """One image: its size after resize and crop, pixels."""
+
+    width: int
+    height: int
+
+
+@dataclass(frozen=True)
+class CameraImageJob(BatchJob[CameraImageInput]):
     """Per frame: read, resize, crop, write the image and its calibration (atomically)."""
 
-    settings: CameraImageSettings
+    command: ClassVar[str] = "camera-images"
+    noun: ClassVar[str] = "camera images"
+    stats_type: ClassVar[type[FrameStats]] = CameraImageStats
 
-    def __call__(self, task: FrameTask[CameraImageInput]) -> dict:
+    settings: CameraImageSettings = field(default_factory=CameraImageSettings)
+
+    def tasks(self, frames: list[Frame], out_dir: Path) -> list[FrameTask[CameraImageInput]]:
+        """One task per frame (frames need ``image`` and ``calibration``, as
+        :func:`sparsetools.io.sources.nuscenes_frames` gives them)."""
+        tasks = []
+        for f in frames:
+            if f.image is None or f.calibration is None:
+                raise ParameterError(f"frame {f.key} has no camera image or calibration")
+            outputs = {"image": f.key.path(out_dir, ".png"),
+                       "calib": f.key.path(out_dir, ".json", prefix="calib")}  # fmt: skip
+            tasks.append(FrameTask(f.key, CameraImageInput(str(f.image), f.calibration), outputs,
+                                   (Path(f.image), *f.extra_inputs)))  # fmt: skip
+        return tasks
+
+    def __call__(self, task: FrameTask[CameraImageInput]) -> CameraImageStats:
         import cv2
 
         from ..io.calib import write_json_calib
@@ -69,46 +93,11 @@ class CameraImageJob:
             rgb = cv2.resize(rgb, (calib.width, calib.height), interpolation=interp)
         if s.crop is not None:
             top, left, h, w = s.crop
-            if top + h > rgb.shape[0] or left + w > rgb.shape[1]:
-                raise ParameterError(
-                    f"crop {s.crop} does not fit the {rgb.shape[1]}x{rgb.shape[0]} image",
-                    param="crop",
-                )
-            calib = calib.cropped(top, left, h, w)
+            calib = calib.cropped(top, left, h, w)  # refuses a crop that does not fit
             rgb = rgb[top : top + h, left : left + w]
         write_image(task.outputs["image"], rgb)
         write_json_calib(
             task.outputs["calib"], calib, frame=task.frame_id, image=inp.image,
             resize=s.resize, crop=s.crop,
         )  # fmt: skip
-        return {"width": int(rgb.shape[1]), "height": int(rgb.shape[0])}
-
-
-def run_camera_images(
-    frames: list[Frame],
-    out_dir: str | os.PathLike,
-    settings: CameraImageSettings,
-    *,
-    batch: Batch | None = None,
-) -> RunSummary:
-    """Write every frame's camera image at the maps' resolution (frames need ``image`` and
-    ``calibration``, as :func:`sparsetools.io.sources.nuscenes_frames` gives them)."""
-    batch = batch or Batch()
-    out = check_output_dir(out_dir, [])
-    tasks = []
-    for f in frames:
-        if f.image is None or f.calibration is None:
-            raise ParameterError(f"frame {f.key} has no camera image or calibration")
-        tasks.append(
-            FrameTask(
-                f.key,
-                CameraImageInput(str(f.image), f.calibration),
-                {
-                    "image": f.key.path(out, ".png"),
-                    "calib": f.key.path(out, ".json", prefix="calib"),
-                },
-                (Path(f.image), *f.extra_inputs),
-            )
-        )
-    spec = RunSpec("camera-images", out, settings, noun="camera images")
-    return run_frames(CameraImageJob(settings), tasks, batch=batch, spec=spec, desc="images")
+        return CameraImageStats(width=int(rgb.shape[1]), height=int(rgb.shape[0]))

@@ -16,13 +16,16 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 from ..errors import FormatError, ParameterError
-from ..io.sources import FrameKey, check_key_part, index_input
-from .batch import Batch, RunSummary
-from .core import FrameTask, RunSpec, check_output_dir, run_frames
+from ..io.sources import Frame, FrameKey, check_key_part
+from ..validate import check_choice
+from .batch import RunSummary
+from .core import BatchJob, FrameStats, FrameTask
+from .provenance import option_names, settings_dict
 
-__all__ = ["ExportSettings", "export_kitti_dc"]
+__all__ = ["LAYOUTS", "ExportJob", "ExportSettings", "ExportStats", "drive_splits"]
 
 LAYOUTS = ("kitti-dc", "kitti-selection")
 
@@ -37,11 +40,10 @@ class ExportSettings:
     splits: dict = field(default_factory=dict, metadata={"option": "--split-from"})
 
     def __post_init__(self) -> None:
-        if self.layout not in LAYOUTS:
-            raise ParameterError(f"must be one of {', '.join(LAYOUTS)}", param="layout")
+        check_choice(self.layout, "layout", LAYOUTS)
         check_key_part(self.name, "map set name")
         if not self.name or "/" in self.name:
-            raise ParameterError(f"{self.name!r} must be one folder name", param="name")
+            raise ParameterError(f"{self.name!r} is not one folder name", param="name")
 
 
 @dataclass(frozen=True)
@@ -50,10 +52,61 @@ class ExportInput:
 
 
 @dataclass(frozen=True)
-class ExportJob:
-    """Copy one map (its bytes, unchanged) to its place in the layout."""
+class ExportStats(FrameStats):
+    """One map: bytes copied."""
 
-    def __call__(self, task: FrameTask[ExportInput]) -> dict:
+    bytes: int
+
+
+@dataclass(frozen=True)
+class ExportJob(BatchJob[ExportInput]):
+    """``dataset export`` (picklable): copy each map (its bytes, unchanged) to its place in
+    the layout.
+
+    Attributes
+    ----------
+    settings : ExportSettings
+    default_split : str, optional
+        The split of drives ``settings.splits`` does not name (None: such a drive is an
+        error, naming it).
+    """
+
+    command: ClassVar[str] = "export"
+    noun: ClassVar[str] = "exported maps"
+    stats_type: ClassVar[type[FrameStats]] = ExportStats
+
+    settings: ExportSettings = field(default_factory=ExportSettings)
+    default_split: str | None = None
+
+    def tasks(self, frames: list[Frame], out_dir: Path) -> list[FrameTask[ExportInput]]:
+        """One task per map (``Frame.depth``, keyed ``<drive>/<frame>``)."""
+        s = self.settings
+        tasks = []
+        for f in frames:
+            key, path = f.key, f.depth
+            if not key.sequence or "/" in key.sequence:
+                raise FormatError(
+                    f"{path}: maps must be keyed <drive>/<frame> (a KITTI raw or "
+                    f"depth-completion root's outputs), got frame '{key}'"
+                )
+            drive_split = s.splits.get(key.sequence, self.default_split)
+            if s.layout == "kitti-dc" and drive_split is None:
+                raise ParameterError(
+                    f"no split for drive {key.sequence}: give --split-from (a depth-completion "
+                    "tree) or --split",
+                    param="split",
+                )
+            target = _target(out_dir, key, s, drive_split)
+            tasks.append(FrameTask(key, ExportInput(str(path)), {"depth": target}, (path,)))
+        return tasks
+
+    def record(self) -> dict:
+        return {**settings_dict(self.settings), "default_split": self.default_split}
+
+    def option_names(self) -> dict:
+        return {**option_names(self.settings), "default_split": "--split"}
+
+    def __call__(self, task: FrameTask[ExportInput]) -> ExportStats:
         from ..io.atomic import atomic_path
         from ..io.image import read_depth_png
 
@@ -61,7 +114,11 @@ class ExportJob:
         data = Path(task.inputs.source).read_bytes()
         with atomic_path(task.outputs["depth"]) as tmp:
             tmp.write_bytes(data)
-        return {"bytes": len(data)}
+        return ExportStats(bytes=len(data))
+
+    def finish(self, summary: RunSummary, tasks: list, out_dir: Path) -> dict:
+        return {"layout": self.settings.layout, "name": self.settings.name,
+                "output": str(out_dir)}  # fmt: skip
 
 
 def _target(out: Path, key: FrameKey, s: ExportSettings, split: str | None) -> Path:
@@ -84,57 +141,3 @@ def drive_splits(tree: str | os.PathLike) -> dict[str, str]:
             f"{tree}: no {{train,val}}/<drive>/proj_depth/ folders to take splits from"
         )
     return out
-
-
-def export_kitti_dc(
-    maps: str | os.PathLike,
-    out_dir: str | os.PathLike,
-    settings: ExportSettings,
-    *,
-    split: str | None = None,
-    batch: Batch | None = None,
-) -> RunSummary:
-    """Copy the depth maps in ``maps`` (keyed ``<drive>/<frame>``) into ``settings.layout``.
-
-    Parameters
-    ----------
-    maps : path-like
-        A folder of depth maps per drive (``<drive>/<frame>.png``), e.g. a ``project`` output
-        for a KITTI raw root.
-    out_dir : path-like
-    settings : ExportSettings
-        ``splits``: drive -> split (:func:`drive_splits` of a depth-completion tree).
-    split : str, optional
-        The split of drives ``settings.splits`` does not name (default: such drives are an
-        error, naming the first).
-    """
-    batch = batch or Batch()
-    index = index_input(maps, "depth", option="MAPS")
-    out = check_output_dir(out_dir, [maps])
-    tasks = []
-    for key, path in index.files.items():
-        if not key.sequence or "/" in key.sequence:
-            raise FormatError(
-                f"{path}: maps must be keyed <drive>/<frame> (a KITTI raw or depth-completion "
-                f"root's outputs), got frame '{key}'"
-            )
-        drive_split = settings.splits.get(key.sequence, split)
-        if settings.layout == "kitti-dc" and drive_split is None:
-            raise ParameterError(
-                f"no split for drive {key.sequence}: give --split-from (a depth-completion tree) "
-                "or --split",
-                param="split",
-            )
-        target = _target(out, key, settings, drive_split)
-        tasks.append(FrameTask(key, ExportInput(str(path)), {"depth": target}, (path,)))
-    spec = RunSpec("export", out, {**_settings(settings), "default_split": split},
-                   noun="exported maps", options={"default_split": "--split"})  # fmt: skip
-    return run_frames(ExportJob(), tasks, batch=batch, spec=spec).with_totals(
-        {"layout": settings.layout, "name": settings.name, "output": str(out)}
-    )
-
-
-def _settings(settings: ExportSettings) -> dict:
-    from .provenance import settings_dict
-
-    return settings_dict(settings)

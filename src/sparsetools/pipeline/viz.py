@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import OutputError, ParameterError
@@ -21,7 +21,7 @@ class VizSettings:
     Attributes
     ----------
     max_depth : float, metres
-        Depth shown in red (0 m is blue, turbo colour map).
+        Top of the colour scale, shown in red (0 m is blue, turbo colour map; ``--color-max``).
     dilate : int, pixels
         Each point is drawn as a (2 * dilate + 1)^2 square.
     horizontal : bool
@@ -31,7 +31,7 @@ class VizSettings:
     colorbar : bool
     """
 
-    max_depth: float = 80.0
+    max_depth: float = field(default=80.0, metadata={"option": "--color-max"})
     dilate: int = 2
     horizontal: bool = False
     labels: tuple[str, ...] | None = None

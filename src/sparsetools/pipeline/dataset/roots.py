@@ -16,6 +16,7 @@ from pathlib import Path
 
 from ...errors import FormatError, ParameterError
 from ..batch import Batch, RunSummary
+from ..core import run_job
 from .build import SOURCES_DIR, build_dataset
 
 __all__ = ["build_kitti_dc_dataset", "build_kitti_raw_dataset", "build_nuscenes_dataset"]
@@ -53,11 +54,11 @@ def build_nuscenes_dataset(
     ``gt_sensor`` (``None``: none), splits by scene.
 
     The radar paper's setting: ``camera="CAM_FRONT", resize=0.5, crop=(100, 0, 350, 800)``
-    (1600x900 -> 800x450, the top 100 rows cut).
+    (``--crop 800x350+0+100``: 1600x900 -> 800x450, the top 100 rows cut).
     """
     from ...io.sources import nuscenes_frames
-    from ..camera_images import CameraImageSettings, run_camera_images
-    from ..project import ProjectSettings, project_tasks, run_project
+    from ..camera_images import CameraImageJob, CameraImageSettings
+    from ..project import ProjectJob, ProjectSettings
 
     batch = batch or Batch()
     if jbf and not sensor.upper().startswith("RADAR"):
@@ -73,31 +74,22 @@ def build_nuscenes_dataset(
             log.warning("%d sample(s) lack %s and are left out", len(lost), gt_sensor)
         frames = [f for f in frames if f.key in have]
         gt_frames = [f for f in gt_frames if f.key in {f.key for f in frames}]
-    run_camera_images(
-        frames, _stage(out, "images"), CameraImageSettings(resize=resize, crop=crop),
-        batch=batch,
-    )  # fmt: skip
-    settings = ProjectSettings(resize=resize, crop=crop, camera=camera)
-    run_project(
-        project_tasks(frames, _stage(out, "sparse"), settings),
-        _stage(out, "sparse"), settings, batch=batch, inputs=[root],
-    )  # fmt: skip
+    images = CameraImageJob(CameraImageSettings(resize=resize, crop=crop))
+    run_job(images, frames, _stage(out, "images"), batch=batch, desc="images")
+    project = ProjectJob(ProjectSettings(resize=resize, crop=crop, camera=camera))
+    run_job(project, frames, _stage(out, "sparse"), batch=batch, inputs=[root])
     gt = None
     if gt_sensor is not None:
-        run_project(
-            project_tasks(gt_frames, _stage(out, "gt"), settings),
-            _stage(out, "gt"), settings, batch=batch, inputs=[root],
-        )  # fmt: skip
+        run_job(project, gt_frames, _stage(out, "gt"), batch=batch, inputs=[root])
         gt = _stage(out, "gt")
     sparse, confidence, source = _stage(out, "sparse"), None, sensor.lower()
     if jbf:
-        from ..jbf_expand import JbfSettings, run_jbf_expand
+        from ...io.sources import radar_frames
+        from ..jbf_expand import JbfJob
 
-        run_jbf_expand(
-            [_stage(out, "sparse")], image=_stage(out, "images"),
-            calib=_stage(out, "images") / "calib", out_dir=_stage(out, "jbf"),
-            settings=JbfSettings(), batch=batch,
-        )  # fmt: skip
+        radar = radar_frames([_stage(out, "sparse")], image=_stage(out, "images"),
+                             calib=_stage(out, "images") / "calib")  # fmt: skip
+        run_job(JbfJob(), radar, _stage(out, "jbf"), batch=batch)
         sparse = confidence = _stage(out, "jbf")
         source = f"{sensor.lower()}-jbf"
     return build_dataset(
@@ -142,8 +134,8 @@ def build_kitti_raw_dataset(
     image, the projected scan kept at ``beams`` beams as input (``None``: the full scan), the
     full-scan projection as ground truth; splits by drive, or Eigen / Eigen-Zhou split files."""
     from ...io.sources import Frame, cloud_frames, is_kitti_raw, kitti_raw_index
-    from ..beams import BeamsSettings, run_beams
-    from ..project import ProjectSettings, project_tasks, run_project
+    from ..beams import BeamsJob, BeamsSettings
+    from ..project import ProjectJob, ProjectSettings
 
     batch = batch or Batch()
     out = Path(out_dir)
@@ -153,15 +145,12 @@ def build_kitti_raw_dataset(
             "data/ or image_0N/data/ with the calibration pair)"
         )
     frames = cloud_frames([root], camera=camera)
-    settings = ProjectSettings(camera=camera)
-    run_project(
-        project_tasks(frames, _stage(out, "gt"), settings), _stage(out, "gt"), settings,
-        batch=batch, inputs=[root],
-    )  # fmt: skip
+    project = ProjectJob(ProjectSettings(camera=camera))
+    run_job(project, frames, _stage(out, "gt"), batch=batch, inputs=[root])
     sparse = _stage(out, "gt")
     if beams is not None:
-        run_beams(frames, _stage(out, f"beams{beams}"), BeamsSettings(n=(beams,)),
-                  batch=batch, inputs=[root])  # fmt: skip
+        run_job(BeamsJob(BeamsSettings(n=(beams,))), frames, _stage(out, f"beams{beams}"),
+                batch=batch, inputs=[root])  # fmt: skip
         raw = kitti_raw_index(root, what="cloud", camera=camera)
         beam_frames = [
             Frame(key=f.key, cloud=f.key.path(_stage(out, f"beams{beams}"), ".bin"),
@@ -169,8 +158,7 @@ def build_kitti_raw_dataset(
             for f in frames
         ]  # fmt: skip
         sparse = _stage(out, f"sparse{beams}")
-        run_project(project_tasks(beam_frames, sparse, settings), sparse, settings,
-                    batch=batch, inputs=[])  # fmt: skip
+        run_job(project, beam_frames, sparse, batch=batch)
     return build_dataset(
         out,
         rgb=root,
