@@ -16,6 +16,7 @@ from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 from ..errors import DependencyError, ParameterError
+from ..validate import check_int_range
 
 __all__ = ["DaskExecutor"]
 
@@ -48,11 +49,9 @@ class DaskExecutor:
             raise DependencyError(
                 "--executor dask needs dask[distributed]: pip install 'sparsetools[dask]'"
             ) from exc
-        if workers < 1:
-            raise ParameterError(f"--workers must be >= 1, got {workers}")
-        if chunk_size is not None and chunk_size < 1:
-            raise ParameterError(f"chunk size must be >= 1, got {chunk_size}")
-        self.workers = workers
+        if chunk_size is not None:
+            check_int_range(chunk_size, "chunk_size", low=1)
+        self.workers = workers  # >= 1: checked by make_executor
         self.scheduler = scheduler
         self.chunk_size = chunk_size
 

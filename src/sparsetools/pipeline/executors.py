@@ -28,8 +28,6 @@ import threading
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any, Protocol
 
-from ..errors import ParameterError
-
 __all__ = [
     "Executor",
     "LocalExecutor",
@@ -62,8 +60,6 @@ def available_cpus() -> int:
 def usable_workers(requested: int, n_tasks: int, *, cap_cpus: bool = True) -> int:
     """``requested`` capped by the task count and (``cap_cpus``) the available CPUs, with a
     log line when capped."""
-    if requested < 1:
-        raise ParameterError(f"must be >= 1, got {requested}", param="workers")
     limit = max(1, n_tasks)
     why = f"{n_tasks} task(s)"
     cpus = available_cpus()
@@ -268,9 +264,7 @@ class LocalExecutor:
     """A local pool of ``workers`` processes that die with their parent."""
 
     def __init__(self, workers: int):
-        if workers < 1:
-            raise ParameterError(f"must be >= 1, got {workers}", param="workers")
-        self.workers = workers
+        self.workers = workers  # >= 1: checked by make_executor
 
     def map(self, fn, items):
         items = list(items)
@@ -297,12 +291,12 @@ def make_executor(
     kind: str = "local", *, workers: int = 1, scheduler: str | None = None
 ) -> Executor:
     """Executor by name: ``local`` (serial for 1 worker, else a process pool) or ``dask``."""
-    if workers < 1:
-        raise ParameterError(f"must be >= 1, got {workers}", param="workers")
+    from ..validate import check_choice, check_int_range
+
+    check_int_range(workers, "workers", low=1)
+    check_choice(kind, "executor", ("local", "dask"))
     if kind == "local":
         return SerialExecutor() if workers == 1 else LocalExecutor(workers)
-    if kind == "dask":
-        from .dask import DaskExecutor  # optional dependency, imported only when asked
+    from .dask import DaskExecutor  # optional dependency, imported only when asked
 
-        return DaskExecutor(workers=workers, scheduler=scheduler)
-    raise ParameterError(f"unknown executor '{kind}' (choose local or dask)", param="executor")
+    return DaskExecutor(workers=workers, scheduler=scheduler)

@@ -46,10 +46,12 @@ from ..io.provenance import (
 )
 
 __all__ = [
+    "COMPATIBLE_VERSIONS",
     "OutputFile",
     "OutputFolder",
     "OutputTree",
     "Plan",
+    "check_made_by",
     "settings_dict",
     "settings_difference",
 ]
@@ -137,6 +139,45 @@ def settings_difference(
     return None
 
 
+#: Versions whose outputs this version writes byte for byte from the same settings (checked by
+#: tests/test_compat_v020.py): their folders resume; a record of any other version is refused.
+COMPATIBLE_VERSIONS = frozenset({__version__, "0.2.0"})
+
+
+def check_made_by(
+    record: RunRecord,
+    *,
+    command: str,
+    settings: Mapping,
+    names: Mapping[str, str],
+    noun: str,
+    place,
+    remedy: str = "use --overwrite or another -o",
+) -> None:
+    """Refuse outputs that another command, other settings or an incompatible sparsetools
+    version made: the one refusal of every kind of output (a folder, a tree, a file).
+
+    Raises
+    ------
+    OutputError
+        Naming what differs: the command, the first setting (as its option), the version.
+    """
+    if record.command != command:
+        raise OutputError(
+            f"{place} holds the output of `sparsetools {record.command}`, not `{command}`: "
+            "use another -o (or --overwrite to replace it)"
+        )
+    diff = settings_difference(record.settings, settings, names)
+    if diff is not None:
+        opt, a, b = diff
+        raise OutputError(f"{place} holds {noun} made with {opt} {a}, not {b}: {remedy}")
+    if record.version not in COMPATIBLE_VERSIONS:
+        raise OutputError(
+            f"{place} holds {noun} made by sparsetools {record.version}, this is "
+            f"{__version__}: {remedy}"
+        )
+
+
 @dataclasses.dataclass
 class Plan:
     """Tasks of a run by state: to compute (new or recomputed) and up to date."""
@@ -209,23 +250,8 @@ class OutputFolder:
     def _check_record(self) -> None:
         old = read_run_record(self.out)
         if old is not None and not self.overwrite:
-            if old.command != self.command:
-                raise OutputError(
-                    f"{self.out} holds the output of `sparsetools {old.command}`, not "
-                    f"`{self.command}`: use another -o (or --overwrite to replace it)"
-                )
-            diff = settings_difference(old.settings, self.settings, self.names)
-            if diff is not None:
-                opt, a, b = diff
-                raise OutputError(
-                    f"{self.out} holds {self.noun} made with {opt} {a}, not {b}: "
-                    "use --overwrite or another -o"
-                )
-            if old.version != __version__:
-                raise OutputError(
-                    f"{self.out} holds {self.noun} made by sparsetools {old.version}, this is "
-                    f"{__version__}: use --overwrite or another -o"
-                )
+            check_made_by(old, command=self.command, settings=self.settings, names=self.names,
+                          noun=self.noun, place=self.out)  # fmt: skip
         self.records = {} if old is None else read_frame_records(self.out)
         self._had_record = old is not None
 
@@ -398,8 +424,12 @@ class OutputFile:
     overwrite : bool
     """
 
-    def __init__(self, path, command: str, settings, sources, *, overwrite: bool = False):
+    def __init__(
+        self, path, command: str, settings, sources, *, overwrite: bool = False,
+        noun: str = "a file",
+    ):  # fmt: skip
         self.path = Path(path)
+        self.noun = noun
         self.command = command
         self.settings = settings_dict(settings)
         self.names = option_names(settings)
@@ -422,21 +452,11 @@ class OutputFile:
                 "another -o"
             )
         run, frame = rec
-        if run.command != self.command:
-            raise OutputError(
-                f"{self.path} was written by `sparsetools {run.command}`, not `{self.command}`: "
-                "use --overwrite or another -o"
-            )
-        diff = settings_difference(run.settings, self.settings, self.names)
-        if diff is not None:
-            opt, a, b = diff
-            raise OutputError(
-                f"{self.path} was made with {opt} {a}, not {b}: use --overwrite or another -o"
-            )
+        check_made_by(run, command=self.command, settings=self.settings, names=self.names,
+                      noun=self.noun, place=self.path)  # fmt: skip
         now = self._identities()
         same = (
-            run.version == __version__
-            and len(now) == len(frame.inputs)
+            len(now) == len(frame.inputs)
             and all(a.same_file(b) for a, b in zip(frame.inputs, now, strict=True))
             and frame.key == self.path.name
         )
@@ -480,24 +500,10 @@ class OutputTree:
                 f"{self.out} is not empty and has no record of what made it: use --overwrite "
                 "or another folder"
             )
-        if run.command != self.command:
-            raise OutputError(
-                f"{self.out} holds the output of `sparsetools {run.command}`, not "
-                f"`{self.command}`: use another folder (or --overwrite to replace it)"
-            )
-        diff = settings_difference(run.settings, self.settings, self.names)
-        if diff is not None:
-            opt, a, b = diff
-            raise OutputError(
-                f"{self.out} holds {self.noun} made with {opt} {a}, not {b}: use --overwrite "
-                "or another folder"
-            )
+        check_made_by(run, command=self.command, settings=self.settings, names=self.names,
+                      noun=self.noun, place=self.out)  # fmt: skip
         rec = read_frame_records(self.out).get(self.KEY)
-        return (
-            run.version == __version__
-            and rec is not None
-            and all((self.out / rel).is_file() for rel in rec.outputs.values())
-        )
+        return rec is not None and all((self.out / rel).is_file() for rel in rec.outputs.values())
 
     def record(self, files) -> None:
         """Record the files the command wrote (paths inside the folder)."""

@@ -73,11 +73,11 @@ def render_viz(
             f"{len(settings.labels)} label(s) for {len(depth)} depth map(s)", param="labels"
         )
     if out.suffix.lower() not in PICTURE_SUFFIXES:
-        raise ParameterError("output must be .png or .jpg", param="--out")
+        raise ParameterError("the picture is written as .png or .jpg", param="--out")
     sources = [*depth, *([Path(image)] if image is not None else [])]
     if out.resolve() in {p.resolve() for p in sources}:
         raise OutputError(f"output {out} would replace an input file: choose another -o")
-    target = OutputFile(out, "viz", settings, sources, overwrite=overwrite)
+    target = OutputFile(out, "viz", settings, sources, overwrite=overwrite, noun="a picture")
     if target.up_to_date():
         return "up to date", None
     maps = [read_depth_file(p) for p in depth]
