@@ -13,6 +13,7 @@ from .options import (
     calib_option,
     checked,
     emit_summary,
+    format_option,
     image_option,
     image_size_option,
     output_dir_option,
@@ -133,13 +134,8 @@ def _non_negative_ints(ctx, param, value):
 )
 @image_size_option
 @image_option
-@click.option(
-    "--format",
-    "fmt",
-    type=click.Choice(["bin", "npy", "pcd"]),
-    default="bin",
-    show_default=True,
-    help="Output format (bin keeps the input's float32 rows).",
+@format_option(
+    ["bin", "npy", "pcd"], default="bin", help="Output format (bin keeps the input's float32 rows)."
 )
 @click.option(
     "--far-range",

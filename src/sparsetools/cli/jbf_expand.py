@@ -13,6 +13,7 @@ from .options import (
     emit_summary,
     image_option,
     max_depth_option,
+    method_option,
     output_dir_option,
     positive,
     resize_option,
@@ -34,11 +35,9 @@ from .options import (
     "--fy", type=float, callback=positive, help="Focal length in pixels (instead of --calib)."
 )
 @output_dir_option
-@click.option(
-    "--method",
-    type=click.Choice(["jbf", "height-extend"]),
+@method_option(
+    ["jbf", "height-extend"],
     default="jbf",
-    show_default=True,
     help="Joint bilateral expansion or the vertical-line baseline.",
 )
 @click.option(

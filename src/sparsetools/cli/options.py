@@ -481,6 +481,17 @@ def root_flag(name: str) -> bool:
     return bool(obj and obj.get(name))
 
 
+def workers_option(f=None, *, help: str):
+    """``--workers``: worker processes (the results never depend on their number)."""
+
+    def deco(fn):
+        return click.option(
+            "--workers", type=click.IntRange(min=1), default=1, show_default=True, help=help
+        )(fn)
+
+    return deco(f) if f is not None else deco
+
+
 def batch_options(f):
     """The batch options every batch command has, passed to the command as ``batch``.
 
@@ -505,13 +516,9 @@ def batch_options(f):
         return f(*args, batch=batch, as_json=as_json, **kw)
 
     decorators = [
-        click.option(
-            "--workers",
-            type=click.IntRange(min=1),
-            default=1,
-            show_default=True,
+        workers_option(
             help="Frames processed in parallel (local processes or Dask workers); capped by "
-            "the frames and the CPUs available.",
+            "the frames and the CPUs available."
         ),
         overwrite_option(
             help="Recompute every frame and replace this folder's results (files the "
@@ -627,6 +634,30 @@ def pixel_offset_option(f):
         show_default=True,
         help="-1 shifts pixels by one as monodepth2 does (KITTI's 1-based code).",
     )(f)
+
+
+# -- the camera rig and nuScenes ----------------------------------------------------------------
+
+
+def camera_option(f=None, *, default: str | None = None, help: str):
+    """``--camera``: which camera of the rig the maps are for (a KITTI index or a nuScenes
+    channel)."""
+
+    def deco(fn):
+        return click.option(
+            "--camera", default=default, show_default=default is not None, help=help
+        )(fn)
+
+    return deco(f) if f is not None else deco
+
+
+def sensor_option(f=None, *, default: str = "RADAR_FRONT", help: str):
+    """``--sensor``: the nuScenes channel of the depth sensor (RADAR_*, LIDAR_TOP)."""
+
+    def deco(fn):
+        return click.option("--sensor", default=default, show_default=True, help=help)(fn)
+
+    return deco(f) if f is not None else deco
 
 
 # -- nuScenes -----------------------------------------------------------------------------------

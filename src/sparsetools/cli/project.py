@@ -9,8 +9,10 @@ import click
 from .options import (
     batch_options,
     calib_option,
+    camera_option,
     crop_option,
     emit_summary,
+    format_option,
     image_option,
     image_size_option,
     max_depth_option,
@@ -19,6 +21,7 @@ from .options import (
     output_dir_option,
     pixel_offset_option,
     resize_option,
+    sensor_option,
     sweeps_option,
 )
 
@@ -31,17 +34,10 @@ from .options import (
 @output_dir_option
 @image_size_option
 @image_option
-@click.option(
-    "--camera",
-    default=None,
-    help="KITTI camera index (default 2) or nuScenes camera (default CAM_FRONT).",
-)
-@click.option(
-    "--format",
-    "fmt",
-    type=click.Choice(["png", "npy", "parquet"]),
+@camera_option(help="KITTI camera index (default 2) or nuScenes camera (default CAM_FRONT).")
+@format_option(
+    ["png", "npy", "parquet"],
     default="png",
-    show_default=True,
     help="png: KITTI uint16 (depth*256); npy: float32 metres; parquet: "
     "OUT/sparse.parquet, one row per frame with lists u, v, depth.",
 )
@@ -71,12 +67,7 @@ from .options import (
     help="nuScenes root (tables in ROOT/<nuscenes-version>/).",
 )
 @nuscenes_version_option
-@click.option(
-    "--sensor",
-    default="RADAR_FRONT",
-    show_default=True,
-    help="nuScenes sensor channel to project (RADAR_FRONT, LIDAR_TOP, ...).",
-)
+@sensor_option(help="nuScenes sensor channel to project (RADAR_FRONT, LIDAR_TOP, ...).")
 @sweeps_option(help="nuScenes sweeps accumulated per key frame [default: 5 for radar, 1 else].")
 @batch_options
 def project(

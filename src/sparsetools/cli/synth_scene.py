@@ -11,9 +11,11 @@ from .options import (
     emit_summary,
     json_option,
     output_dir_option,
+    overwrite_option,
     quiet_debug_options,
     size_wxh,
     warn_deprecated,
+    workers_option,
 )
 
 #: Defaults of --frames and --image-size in video mode (when not given).
@@ -89,14 +91,8 @@ _SINGLE_ONLY = ("underwater_frames", "stem_prefix")
     metavar="SIGMA",
     help="Video mode: Gaussian image noise, grey levels.",
 )
-@click.option(
-    "--workers",
-    type=click.IntRange(min=1),
-    default=1,
-    show_default=True,
-    help="Video mode: frames simulated in parallel (same bytes for any number).",
-)
-@click.option("--overwrite", is_flag=True, help="Replace existing files in OUT_DIR.")
+@workers_option(help="Video mode: frames simulated in parallel (same bytes for any number).")
+@overwrite_option(help="Regenerate the folder even when it holds a scene made otherwise.")
 @click.option(
     "--check",
     "check_dir",
