@@ -164,8 +164,8 @@ def dataset():
     "copy",
     default=True,
     show_default=True,
-    help="Copy input files, or link them symbolically (the dataset can then never change "
-    "an input; moving the inputs breaks the links).",
+    help="Copy input files, or reflink them (copy-on-write clones where the file system "
+    "has them, else copies; never hard or symbolic links).",
 )
 @click.option(
     "--source",
@@ -215,30 +215,21 @@ def build(
       sparsetools dataset build -o out/kitti --rgb raw --sparse velodyne_raw \\
           --split-file train=eigen_train_files.txt --split-file test=eigen_test_files.txt
     """
-    from ..pipeline.dataset import build_dataset
+    from ..pipeline.core import run_job
+    from ..pipeline.dataset import BuildSettings, DatasetJob, find_build_inputs
 
     if split is not None and split_files:
         raise click.UsageError("give --split or --split-file, not both")
-    summary = build_dataset(
-        out_dir,
-        rgb=rgb,
-        sparse=sparse,
-        gt=gt,
-        confidence=confidence,
-        calib=calib,
-        sequence_from=sequence_from,
-        split=split,
-        split_files=split_files or None,
-        seed=seed,
-        sparse_format=sparse_format,
-        link=not copy,
-        source=source,
-        params=params,
-        batch=batch,
-    ).as_dict()
-    if not as_json:
-        summary = _flat(summary)
-    emit_summary(summary, as_json=as_json, title=f"dataset written to {out_dir}")
+    settings = BuildSettings.with_splits(
+        split, split_files, sequence_from=sequence_from, seed=seed,
+        sparse_format=sparse_format, link=not copy, source=source, params=params,
+    )  # fmt: skip
+    found = find_build_inputs(
+        settings, rgb=rgb, sparse=sparse, gt=gt, confidence=confidence, calib=calib
+    )
+    job = DatasetJob.for_inputs(settings, found, overwrite=batch.overwrite)
+    summary = run_job(job, found.frames, out_dir, batch=batch, inputs=found.roots, desc="dataset")
+    _summary(summary, as_json, out_dir)
 
 
 def _flat(summary: dict) -> dict:
@@ -463,64 +454,7 @@ def info(dataset_dir, as_json):
     from ..pipeline.dataset import dataset_info
 
     d = dataset_info(dataset_dir)
-    if as_json:
-        emit_summary(d, as_json=True)
-        return
-    lines = [
-        ("dataset", d["dataset"]),
-        ("schema version", d["schema_version"]),
-        ("created by", d["created_by"]),
-        ("samples", f"{d['samples']} in {d['sequences']} sequence(s)"),
-    ]
-    for name, s in d["splits"].items():
-        lines.append(
-            (
-                f"  {name}",
-                f"{s['samples']} sample(s), {s['sequences']} sequence(s), {s['with_gt']} with gt",
-            )
-        )
-    lines.append(("image sizes", ", ".join(f"{k} ({v})" for k, v in d["image_sizes"].items())))
-    lines.append(("sources", ", ".join(f"{k} ({v})" for k, v in d["sources"].items())))
-    lines.append(
-        (
-            "with gt / confidence / intrinsics",
-            f"{d['with_gt']} / {d['with_confidence']} / {d['with_intrinsics']}",
-        )
-    )
-    dens = d["density_percent"]
-    npts = d["n_sparse"]
-    lines.append(
-        ("sparse points", f"mean {npts['mean']:.1f}, min {npts['min']:.0f}, max {npts['max']:.0f}")
-    )
-    lines.append(
-        (
-            "density %",
-            f"min {dens['min']:.4g}, median {dens['median']:.4g}, "
-            f"mean {dens['mean']:.4g}, max {dens['max']:.4g}",
-        )
-    )
-    lines.append(
-        (
-            "size",
-            _human(d["total_bytes"])
-            + " ("
-            + ", ".join(f"{k} {_human(v)}" for k, v in d["bytes"].items())
-            + ")",
-        )
-    )
-    if d["missing_files"]:
-        lines.append(("missing files", f"{d['missing_files']} (run 'dataset verify')"))
-    width = max(len(k) for k, _ in lines)
-    for k, v in lines:
-        click.echo(f"{k:<{width}}  {v}")
-
-
-def _human(n: int) -> str:
-    for unit in ("B", "KB", "MB", "GB"):
-        if n < 1024 or unit == "GB":
-            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
-        n /= 1024
-    return str(n)  # pragma: no cover
+    click.echo(json.dumps(d.to_dict(), indent=1) if as_json else d.format())
 
 
 @dataset.command("verify")
@@ -546,16 +480,7 @@ def verify(dataset_dir, no_hash, workers, as_json):
     """
     from ..pipeline.dataset import verify_dataset
 
-    report = verify_dataset(dataset_dir, check_hashes=not no_hash, workers=workers)
-    if as_json:
-        click.echo(json.dumps(report, indent=1))
-    else:
-        for w in report["warnings"]:
-            click.echo(f"warning: {w}")
-        for p in report["problems"]:
-            click.echo(f"problem: {p}")
-        if not report["problems"]:
-            click.echo(f"{dataset_dir}: {report['samples']} sample(s) verified, no problem")
-    if report["problems"]:
-        click.echo(f"Error: {len(report['problems'])} problem(s) found in {dataset_dir}", err=True)
-        click.get_current_context().exit(1)
+    report = verify_dataset(dataset_dir, check_hashes=not no_hash, threads=workers)
+    click.echo(json.dumps(report.to_dict(), indent=1) if as_json else report.format())
+    if not report.ok:
+        raise click.ClickException(f"{len(report.problems)} problem(s) found in {dataset_dir}")
