@@ -77,7 +77,7 @@ def build_args(inputs, out, *extra):
 def test_build_info_verify(inputs, tmp_path):
     out = tmp_path / "ds"
     before = tree_hash(inputs)
-    settings = ("--split", "0.5,0.25,0.25", "--seed", "3", "--source", "lidar-64")
+    settings = ("--splits", "0.5,0.25,0.25", "--seed", "3", "--source", "lidar-64")
     res = run(build_args(inputs, out, "--json", *settings, "--params", '{"beams": 64}'))
     assert res.exit_code == 0, res.output
     summary = json.loads(res.stdout)
@@ -92,8 +92,8 @@ def test_build_info_verify(inputs, tmp_path):
     }
     assert tree_hash(inputs) == before  # inputs untouched
     row = DatasetReader(out).row("s1/0000")
-    assert row["source"] == "lidar-64" and row["fx"] == 30.0
-    assert json.loads(row["generation_params"])["params"] == {"beams": 64}
+    assert row.source == "lidar-64" and row.fx == 30.0
+    assert json.loads(row.generation_params)["params"] == {"beams": 64}
 
     res = run(["dataset", "info", out])
     assert res.exit_code == 0, res.output
@@ -136,8 +136,8 @@ def test_verify_reports_problems_and_exits_1(inputs, tmp_path):
 def test_usage_errors_exit_2(inputs, tmp_path):
     out = tmp_path / "ds"
     for extra in (
-        ["--split", "0.5,0.6"],
-        ["--split", "a,b,c"],
+        ["--splits", "0.5,0.6"],
+        ["--splits", "a,b,c"],
         ["--sequence-from", "folder"],
         ["--sequence-from", "regex:("],
         ["--params", "[1, 2]"],
@@ -147,7 +147,9 @@ def test_usage_errors_exit_2(inputs, tmp_path):
         assert res.exit_code == 2, (extra, res.output)
         assert "Traceback" not in res.output
     (tmp_path / "train.txt").write_text("s1/0000\n")
-    res = run(build_args(inputs, out, "--split", "0.5,0.5", "--split-file", tmp_path / "train.txt"))
+    res = run(
+        build_args(inputs, out, "--splits", "0.5,0.5", "--split-file", tmp_path / "train.txt")
+    )
     assert res.exit_code == 2
     res = run(
         ["dataset", "build", "-o", out, "--rgb", tmp_path / "nope", "--sparse", inputs / "sparse"]
@@ -212,3 +214,92 @@ def test_verify_reports_inputs_changed_since_the_build(inputs, tmp_path):
     # rebuilding makes the dataset current again
     assert run(build_args(inputs, out)).exit_code == 0
     assert run(["dataset", "verify", out]).exit_code == 0
+
+
+# -- the 0.2 spellings: hidden aliases that work for one release, with one warning --------------------
+def _deprecation_lines(stderr: str) -> list[str]:
+    return [line for line in stderr.splitlines() if "deprecated" in line]
+
+
+def test_build_split_is_the_old_spelling_of_splits(inputs, tmp_path):
+    new = run(build_args(inputs, tmp_path / "new", "--splits", "0.5,0.5", "--seed", "1", "--json"))
+    old = run(build_args(inputs, tmp_path / "old", "--split", "0.5,0.5", "--seed", "1", "--json"))
+    assert new.exit_code == 0 and old.exit_code == 0, old.output
+    assert _deprecation_lines(new.stderr) == []
+    assert _deprecation_lines(old.stderr) == [
+        "WARNING: deprecated: --split is now --splits (the old spelling goes in 0.4)"
+    ]
+    drop = ("seconds", "stage_seconds", "output")
+    summary = {k: v for k, v in json.loads(old.stdout).items() if k not in drop}
+    assert summary == {k: v for k, v in json.loads(new.stdout).items() if k not in drop}
+    assert tree_hash(tmp_path / "old") == tree_hash(tmp_path / "new")
+    both = run(build_args(inputs, tmp_path / "both", "--split", "0.5,0.5", "--splits", "0.5,0.5"))
+    assert both.exit_code == 2 and "give --splits only" in both.stderr
+    assert not (tmp_path / "both").exists()
+    bad = run(build_args(inputs, tmp_path / "bad", "--split", "0.5,abc"))  # read as --splits reads
+    assert bad.exit_code == 2 and "must be numbers" in bad.stderr
+
+
+def test_verify_workers_is_the_old_spelling_of_threads(inputs, tmp_path):
+    out = tmp_path / "ds"
+    assert run(build_args(inputs, out)).exit_code == 0
+    new = run(["dataset", "verify", out, "--threads", "2", "--json"])
+    old = run(["dataset", "verify", out, "--workers", "2", "--json"])
+    assert new.exit_code == old.exit_code == 0 and new.stdout == old.stdout
+    assert _deprecation_lines(new.stderr) == []
+    assert _deprecation_lines(old.stderr) == [
+        "WARNING: deprecated: --workers is now --threads (the old spelling goes in 0.4)"
+    ]
+    both = run(["dataset", "verify", out, "--workers", "2", "--threads", "2"])
+    assert both.exit_code == 2 and "give --threads only" in both.stderr
+    assert run(["dataset", "verify", out, "--workers", "0"]).exit_code == 2
+
+
+@pytest.mark.parametrize(
+    "command, function",
+    [("kitti-raw", "build_kitti_raw_dataset"), ("nuscenes", "build_nuscenes_dataset")],
+)
+def test_route_split_is_the_old_spelling_of_splits(command, function, monkeypatch, tmp_path):
+    """dataset kitti-raw / nuscenes pass --splits (or the old --split) on as the fractions."""
+    from sparsetools.pipeline import RunSummary
+    from sparsetools.pipeline.dataset import roots
+
+    calls = []
+
+    def fake(root, out_dir, **kw):
+        calls.append(kw["split"])
+        return RunSummary(command="dataset build", output=out_dir)
+
+    monkeypatch.setattr(roots, function, fake)
+    base = ["dataset", command, tmp_path, "-o", tmp_path / "ds", "--json"]
+    new = run([*base, "--splits", "0.6,0.2,0.2"])
+    old = run([*base, "--split", "0.6,0.2,0.2"])
+    assert new.exit_code == old.exit_code == 0, old.output
+    assert calls == [{"train": 0.6, "val": 0.2, "test": 0.2}] * 2
+    assert len(_deprecation_lines(old.stderr)) == 1 and not _deprecation_lines(new.stderr)
+    both = run([*base, "--split", "0.6,0.4", "--splits", "0.6,0.4"])
+    assert both.exit_code == 2 and len(calls) == 2
+
+
+def test_nuscenes_crop_is_wxh_left_top(monkeypatch, tmp_path):
+    """--crop 800x350+0+100: 800x350 pixels at column 0, row 100 (the old 100,0,350,800)."""
+    from sparsetools.pipeline import RunSummary
+    from sparsetools.pipeline.dataset import roots
+
+    crops = []
+
+    def fake(root, out_dir, **kw):
+        crops.append(kw["crop"])
+        return RunSummary(command="dataset build", output=out_dir)
+
+    monkeypatch.setattr(roots, "build_nuscenes_dataset", fake)
+    base = ["dataset", "nuscenes", tmp_path, "-o", tmp_path / "ds", "--resize", "0.5"]
+    new = run([*base, "--crop", "800x350+0+100"])
+    old = run([*base, "--crop", "100,0,350,800"])
+    assert new.exit_code == old.exit_code == 0, old.output
+    assert crops == [(100, 0, 350, 800)] * 2  # (top, left, height, width)
+    assert not _deprecation_lines(new.stderr)
+    assert _deprecation_lines(old.stderr) == [
+        "WARNING: deprecated: --crop 100,0,350,800 (TOP,LEFT,H,W) is the old syntax: write "
+        "--crop 800x350+0+100 (WxH+LEFT+TOP)"
+    ]

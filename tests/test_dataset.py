@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import importlib.util
 import json
@@ -18,7 +19,9 @@ import pytest
 from sparsetools.errors import FormatError, FrameError, OutputError, ParameterError
 from sparsetools.io.dataset import (
     MANIFEST_NAME,
+    MANIFEST_SCHEMA,
     METADATA_VERSION_KEY,
+    ManifestRow,
     check_relative_path,
     read_manifest,
     resolve_in_dataset,
@@ -151,7 +154,7 @@ def test_round_trip_npy_is_bit_exact(inputs, tmp_path):
         assert r["density"] == r["n_sparse"] / (W * H)
         assert r["sequence"] == r["id"].split("/")[0] and r["frame"] == r["id"].split("/")[1]
         assert json.loads(r["generation_params"])["sparse_format"] == "both"
-    assert verify_dataset(out)["problems"] == []
+    assert verify_dataset(out).problems == ()
 
 
 def test_png_sparse_input_is_copied_and_parquet_holds_decoded_values(tmp_path):
@@ -185,7 +188,7 @@ def test_single_sparse_format(inputs, tmp_path, fmt):
     else:
         assert len(parts) == 1 and all(r["sparse_path"] is None for r in m)
         assert not list((out / "sparse").rglob("*.png"))
-    assert verify_dataset(out)["problems"] == []
+    assert verify_dataset(out).problems == ()
 
 
 def test_part_files_schema_readable_by_pyarrow(inputs, tmp_path):
@@ -241,6 +244,132 @@ def test_workers_give_identical_manifest(inputs, tmp_path):
     assert sha(tmp_path / "a/sparse/part-00000.parquet") == sha(
         tmp_path / "b/sparse/part-00000.parquet"
     )
+
+
+def test_manifest_row_is_the_schema_and_round_trips_arrow(inputs, tmp_path):
+    """ManifestRow's fields are MANIFEST_SCHEMA's, in order; rows -> table -> rows is exact and
+    the table is what the manifest holds (same schema, same values)."""
+    assert [f.name for f in dataclasses.fields(ManifestRow)] == MANIFEST_SCHEMA.names
+    empty = ManifestRow.to_table([])
+    assert empty.num_rows == 0 and empty.schema.equals(MANIFEST_SCHEMA)
+    out = tmp_path / "ds"
+    build(inputs, out)
+    table, _ = read_manifest(out / MANIFEST_NAME)
+    rows = ManifestRow.from_table(table)
+    assert [r.id for r in rows] == table.column("id").to_pylist()
+    back = ManifestRow.to_table(rows)
+    assert back.schema.equals(MANIFEST_SCHEMA)
+    assert back.equals(pq.read_table(out / MANIFEST_NAME).replace_schema_metadata(None))
+    assert ManifestRow.from_table(back) == rows
+    for r in rows:  # a dict of JSON values (the staging record's form) and back
+        assert ManifestRow.from_dict(json.loads(json.dumps(r.to_dict()))) == r
+    r = rows[0]
+    assert r["n_sparse"] == r.n_sparse and r.split in ("train", "val", "test")
+    with pytest.raises(KeyError):
+        r["no_such_column"]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        r.split = "val"
+    # a pose travels as a tuple in the row, a list in Arrow and JSON
+    posed = dataclasses.replace(r, T_world_cam=tuple(float(i) for i in range(16)))
+    assert ManifestRow.from_table(ManifestRow.to_table([posed])) == [posed]
+    assert posed.to_dict()["T_world_cam"] == list(range(16))
+    assert DatasetReader(out).row(r.id) == r
+
+
+def test_build_is_a_batch_job_run_by_run_job(inputs, tmp_path):
+    """The library's build_dataset is settings -> find_build_inputs -> run_job(DatasetJob)."""
+    from sparsetools.pipeline.core import BatchJob, run_job
+    from sparsetools.pipeline.dataset import (
+        BuildSettings,
+        DatasetFrameStats,
+        DatasetJob,
+        find_build_inputs,
+    )
+
+    settings = BuildSettings.with_splits("0.5,0.5", seed=2)
+    found = find_build_inputs(
+        settings, rgb=inputs / "rgb", sparse=inputs / "sparse", gt=inputs / "gt"
+    )
+    assert [x.id for x in found.frames] == sorted(x.id for x in found.frames)
+    assert len(found.frames) == 9 and found.unmatched == {"rgb_without_sparse": 0, "without_gt": 0}
+    job = DatasetJob.for_inputs(settings, found)
+    assert isinstance(job, BatchJob) and job.command == "dataset build"
+    assert pickle.loads(pickle.dumps(job)) == job
+    summary = run_job(job, found.frames, tmp_path / "a", batch=Batch(progress=False),
+                      inputs=found.roots)  # fmt: skip
+    stats = job.stats(summary)
+    assert all(isinstance(s, DatasetFrameStats) for s in stats) and len(stats) == 9
+    reader = DatasetReader(tmp_path / "a")
+    assert [s.n_sparse for s in stats] == [reader.row(x.id).n_sparse for x in found.frames]
+    same = build_dataset(tmp_path / "b", rgb=inputs / "rgb", sparse=inputs / "sparse",
+                         gt=inputs / "gt", split="0.5,0.5", seed=2)  # fmt: skip
+    a = summary.as_dict()
+    for d in (a, same):
+        d.pop("seconds"), d.pop("stage_seconds"), d.pop("output")
+    assert a == same
+    assert pq.read_table(tmp_path / "a" / MANIFEST_NAME).equals(
+        pq.read_table(tmp_path / "b" / MANIFEST_NAME)
+    )
+
+
+def test_build_settings_are_validated_once_and_recorded_as_before():
+    from sparsetools.pipeline.dataset import BuildSettings, DatasetJob
+
+    assert BuildSettings().split == {"train": 0.8, "val": 0.1, "test": 0.1}
+    tree = BuildSettings.with_splits("tree")
+    assert tree.split_from_tree and tree.split is None and tree.split_files is None
+    files = BuildSettings.with_splits(None, ["a.txt", ("test", "b.txt")])
+    assert not files.split_from_tree and files.split is None
+    # 0.2.0 recorded every split file as str(item): its datasets resume
+    assert DatasetJob(files).record()["split_files"] == ["a.txt", "('test', 'b.txt')"]
+    assert DatasetJob(BuildSettings.with_splits("0.6,0.4")).record()["split"] == {
+        "train": 0.6,
+        "val": 0.4,
+    }
+    with pytest.raises(ParameterError, match="--sparse-format"):
+        BuildSettings(sparse_format="tiff")
+    with pytest.raises(ParameterError, match="not both"):
+        BuildSettings.with_splits("0.5,0.5", ["a.txt"])
+    with pytest.raises(ParameterError, match="sum to 1"):
+        BuildSettings(split={"train": 0.5})
+    with pytest.raises(ParameterError, match="sequence-from"):
+        BuildSettings(sequence_from="folder")
+    with pytest.raises(ParameterError, match="--source"):
+        BuildSettings(source=" ")
+    with pytest.raises(ParameterError, match="frames-per-part"):
+        DatasetJob(BuildSettings(), frames_per_part=0)
+
+
+def test_info_and_verify_are_records_with_their_own_text(inputs, tmp_path):
+    from sparsetools.pipeline.dataset import dataset_info
+
+    out = tmp_path / "ds"
+    build(inputs, out, split="0.34,0.33,0.33")
+    info = dataset_info(out)
+    d = json.loads(json.dumps(info.to_dict()))  # JSON values only
+    assert list(d) == [
+        "dataset", "schema_version", "created_by", "samples", "sequences", "splits",
+        "image_sizes", "sources", "with_gt", "with_confidence", "with_intrinsics", "n_sparse",
+        "density_percent", "bytes", "total_bytes", "missing_files", "split_method",
+    ]  # fmt: skip
+    assert d["splits"]["train"] == {"samples": 3, "sequences": 1, "with_gt": 3}
+    assert d["image_sizes"] == {f"{W}x{H}": 9} and d["schema_version"] == 2
+    assert set(d["n_sparse"]) == {"min", "median", "mean", "max"}
+    lines = str(info).splitlines()
+    assert lines[0].split() == ["dataset", str(out)]
+    assert "with gt / confidence / intrinsics  9 / 9 / 9" in lines
+    assert not any("missing files" in line for line in lines)
+
+    report = verify_dataset(out)
+    assert report.ok and str(report) == f"{out}: 9 sample(s) verified, no problem"
+    assert report.to_dict() == {"dataset": str(out), "schema_version": 2, "samples": 9,
+                                "inputs_changed": 0, "problems": [], "warnings": []}  # fmt: skip
+    (out / "rgb" / "seqA" / "000000.png").unlink()
+    report = verify_dataset(out)
+    assert not report.ok and str(report) == "problem: seqA/000000: rgb/seqA/000000.png is missing"
+    assert str(dataset_info(out)).splitlines()[-1].split() == [
+        "missing", "files", "1", "(run", "'dataset", "verify')"
+    ]  # fmt: skip
 
 
 def test_reader_split_views_and_pickling(inputs, tmp_path):
@@ -466,7 +595,7 @@ def test_append_keeps_rows_and_sequence_splits(tmp_path):
     assert after["s2/000002"]["split"] == after["s2/000000"]["split"]
     assert after["s2/000003"]["split"] == before["s2/000000"]["split"]
     assert len({after[f"s9/{i:06d}"]["split"] for i in range(4)}) == 1
-    assert verify_dataset(out)["problems"] == []
+    assert verify_dataset(out).problems == ()
     # a second run with the same inputs does nothing
     again = build(second, out)
     assert again["processed"] == 0 and again["skipped_existing"] == 6 and again["samples"] == 14
@@ -487,8 +616,8 @@ def test_overwrite_rebuilds_given_frames_and_rewrites_parts(inputs, tmp_path):
     assert parts == ["part-00001.parquet"]  # the old part is replaced and removed
     ds = DatasetReader(out)
     assert ds.sample("seqA/000001")["sparse"].tobytes() == new.tobytes()
-    assert ds.row("seqA/000001")["n_sparse"] == 1
-    assert verify_dataset(out)["problems"] == []
+    assert ds.row("seqA/000001").n_sparse == 1
+    assert verify_dataset(out).problems == ()
 
 
 def test_overwrite_keeps_only_this_runs_frames(tmp_path):
@@ -508,7 +637,7 @@ def test_overwrite_keeps_only_this_runs_frames(tmp_path):
     src = np.load(tmp_path / "in" / "sparse" / "a/000001.npy")
     assert ds.sample("a/000001")["sparse"].tobytes() == src.tobytes()
     assert not list((out / "rgb").rglob("b/*"))
-    assert verify_dataset(out)["problems"] == []
+    assert verify_dataset(out).problems == ()
     assert len(list((out / "sparse").glob("part-*.parquet"))) == 1
 
 
@@ -527,7 +656,7 @@ def test_resume_after_interrupted_run(inputs, tmp_path):
         summary["processed"] == 1 and summary["skipped_existing"] == 8 and summary["samples"] == 9
     )
     assert not (out / ".staging").exists()
-    assert verify_dataset(out)["problems"] == []
+    assert verify_dataset(out).problems == ()
 
 
 def test_on_error_skip_writes_the_good_frames(inputs, tmp_path):
@@ -535,7 +664,7 @@ def test_on_error_skip_writes_the_good_frames(inputs, tmp_path):
     summary = build(inputs, tmp_path / "ds", on_error="skip")
     assert summary["failed"] == 1 and "seqB/000001" in summary["failures"]
     assert summary["samples"] == 8
-    assert verify_dataset(tmp_path / "ds")["problems"] == []
+    assert verify_dataset(tmp_path / "ds").problems == ()
 
 
 def test_link_mode_never_lets_the_dataset_alter_an_input(inputs, tmp_path):
@@ -563,7 +692,7 @@ def test_link_mode_never_lets_the_dataset_alter_an_input(inputs, tmp_path):
 def test_verify_catches_truncated_png_changed_and_missing_files(inputs, tmp_path):
     out = tmp_path / "ds"
     build(inputs, out)
-    assert verify_dataset(out)["problems"] == []
+    assert verify_dataset(out).problems == ()
     png = out / "sparse" / "seqA" / "000000.png"
     png.write_bytes(png.read_bytes()[:100])
     rgb = out / "rgb" / "seqB" / "000001.png"
@@ -571,11 +700,11 @@ def test_verify_catches_truncated_png_changed_and_missing_files(inputs, tmp_path
     img[0, 0] ^= 1
     write_image(rgb, img)  # still a valid PNG, different content
     (out / "gt" / "seqC" / "000002.png").unlink()
-    problems = verify_dataset(out)["problems"]
+    problems = verify_dataset(out).problems
     assert any("seqA/000000" in p and "decoded" in p for p in problems)
     assert any("seqB/000001" in p and "changed" in p for p in problems)
     assert any("seqC/000002" in p and "missing" in p for p in problems)
-    assert len(verify_dataset(out, check_hashes=False, workers=2)["problems"]) == len(problems) - 2
+    assert len(verify_dataset(out, check_hashes=False, threads=2).problems) == len(problems) - 2
 
 
 def test_verify_catches_changed_points_and_size_mismatch(inputs, tmp_path):
@@ -587,7 +716,7 @@ def test_verify_catches_changed_points_and_size_mismatch(inputs, tmp_path):
     rows[2]["depth"][0] += 1.0
     pq.write_table(pa.Table.from_pylist(rows, schema=t.schema), part)
     write_image(out / "rgb" / "seqA" / "000001.png", np.zeros((H + 1, W, 3), np.uint8))
-    problems = verify_dataset(out)["problems"]
+    problems = verify_dataset(out).problems
     assert any(rows[2]["id"] in p and "points sha256" in p for p in problems)
     assert any("seqA/000001" in p and f"{W}x{H + 1}" in p for p in problems)
 
@@ -642,7 +771,7 @@ def test_symlink_out_of_dataset_is_rejected(inputs, tmp_path):
         resolve_in_dataset(out, "rgb/seqA/000000.png")
     with pytest.raises(FormatError, match="outside the dataset"):
         DatasetReader(out).sample("seqA/000000")
-    assert any("outside the dataset" in p for p in verify_dataset(out)["problems"])
+    assert any("outside the dataset" in p for p in verify_dataset(out).problems)
 
 
 def test_schema_version_checks(inputs, tmp_path):
@@ -757,9 +886,9 @@ def test_real_kitti_depth_frames(tmp_path):
     assert s["sparse"].tobytes() == gt.tobytes()
     assert s["intrinsics"][0, 0] == pytest.approx(721.5377)
     r = ds.row("0000000005")
-    assert r["sparse_sha256"] == sha(src / "depth" / "0000000005.png")
-    assert 0.19 < r["density"] < 0.21  # README: ~19.5-20.6 % valid
-    assert verify_dataset(out)["problems"] == []
+    assert r.sparse_sha256 == sha(src / "depth" / "0000000005.png")
+    assert 0.19 < r.density < 0.21  # README: ~19.5-20.6 % valid
+    assert verify_dataset(out).problems == ()
 
 
 # -- sample data: project -> dataset build -> reader ---------------------------------------------------------
@@ -816,7 +945,7 @@ def test_dataset_from_sample_data_is_readable(tmp_path):
         both = (s["sparse"] > 0) & (s["gt"] > 0)
         assert both.sum() > 1000
         assert np.median(np.abs(s["sparse"][both] - s["gt"][both])) < 0.1
-    assert verify_dataset(out)["problems"] == []
+    assert verify_dataset(out).problems == ()
 
 
 def test_png_and_parquet_agree_at_the_range_limits(tmp_path):
@@ -833,10 +962,10 @@ def test_png_and_parquet_agree_at_the_range_limits(tmp_path):
     assert summary["samples"] == 1
     r = DatasetReader(tmp_path / "ds").row("f")
     # 0.001 m and 1/512 m round to 0 (< 1) and 300 m to > 65535: three clipped values
-    assert json.loads(r["generation_params"])["png_clipped"] == 3
+    assert json.loads(r.generation_params)["png_clipped"] == 3
     assert DatasetReader(tmp_path / "ds").sample("f")["sparse"].tobytes() == d.tobytes()
-    assert verify_dataset(tmp_path / "ds")["problems"] == []
+    assert verify_dataset(tmp_path / "ds").problems == ()
     # a PNG that really differs from the points is reported
     write_depth_png(tmp_path / "ds" / "sparse" / "f.png", np.where(d > 0, d + 1, 0))
-    problems = verify_dataset(tmp_path / "ds", check_hashes=False)["problems"]
-    assert problems == ["f: sparse/f.png and sparse/part-00000.parquet disagree"]
+    problems = verify_dataset(tmp_path / "ds", check_hashes=False).problems
+    assert problems == ("f: sparse/f.png and sparse/part-00000.parquet disagree",)

@@ -10,7 +10,9 @@ import click
 from .options import (
     batch_options,
     calib_option,
+    checked,
     crop_option,
+    deprecated,
     emit_summary,
     gt_option,
     json_option,
@@ -23,28 +25,35 @@ from .options import (
 )
 
 
-def _split_callback(ctx, param, value):
-    if value is None:
-        return None
-    if value == "tree":
+def _splits_callback(ctx, param, value):
+    if value is None or value == "tree":
         return value
-    from ..errors import ParameterError
     from ..pipeline.dataset import parse_split_fractions
 
-    try:
-        return parse_split_fractions(value)
-    except ParameterError as exc:
-        raise click.BadParameter(str(exc)) from None
+    return checked(parse_split_fractions)(ctx, param, value)
+
+
+def splits_option(command: str, *, tree: bool = False):
+    """``--splits``: split fractions over sequences (``tree``: or the input tree's split),
+    passed as ``splits``; and its 0.2 spelling ``--split`` (now a split's name everywhere)."""
+    metavar = "TRAIN,VAL,TEST|tree" if tree else "TRAIN,VAL,TEST"
+    text = "Split fractions over sequences [default: 0.8,0.1,0.1]; or name=fraction,..."
+    if tree:
+        text += "; or 'tree': the split of a KITTI depth-completion tree (train / val)."
+
+    def deco(f):
+        f = deprecated("--split", "--splits", command=command, dest="splits", metavar=metavar)(f)
+        return click.option(
+            "--splits", "splits", callback=_splits_callback, metavar=metavar, help=text
+        )(f)
+
+    return deco
 
 
 def _sequence_callback(ctx, param, value):
-    from ..errors import ParameterError
     from ..pipeline.dataset import sequence_resolver
 
-    try:
-        sequence_resolver(value, "x")
-    except ParameterError as exc:
-        raise click.BadParameter(str(exc)) from None
+    checked(lambda v: sequence_resolver(v, "sequence"))(ctx, param, value)
     return value
 
 
@@ -134,14 +143,7 @@ def dataset():
     help="Sequence of a frame: its folder, or a regex on its relative path "
     "(group 'sequence' or group 1).",
 )
-@click.option(
-    "--split",
-    "split",
-    callback=_split_callback,
-    metavar="TRAIN,VAL,TEST|tree",
-    help="Split fractions over sequences [default: 0.8,0.1,0.1]; name=fraction,...; or "
-    "'tree': the split of a KITTI depth-completion tree (train / val).",
-)
+@splits_option("dataset build", tree=True)
 @click.option(
     "--split-file",
     "split_files",
@@ -164,8 +166,8 @@ def dataset():
     "copy",
     default=True,
     show_default=True,
-    help="Copy input files, or link them symbolically (the dataset can then never change "
-    "an input; moving the inputs breaks the links).",
+    help="Copy input files, or reflink them (copy-on-write clones where the file system "
+    "has them, else copies; never hard or symbolic links).",
 )
 @click.option(
     "--source",
@@ -188,7 +190,7 @@ def build(
     confidence,
     calib,
     sequence_from,
-    split,
+    splits,
     split_files,
     seed,
     sparse_format,
@@ -215,30 +217,21 @@ def build(
       sparsetools dataset build -o out/kitti --rgb raw --sparse velodyne_raw \\
           --split-file train=eigen_train_files.txt --split-file test=eigen_test_files.txt
     """
-    from ..pipeline.dataset import build_dataset
+    from ..pipeline.core import run_job
+    from ..pipeline.dataset import BuildSettings, DatasetJob, find_build_inputs
 
-    if split is not None and split_files:
-        raise click.UsageError("give --split or --split-file, not both")
-    summary = build_dataset(
-        out_dir,
-        rgb=rgb,
-        sparse=sparse,
-        gt=gt,
-        confidence=confidence,
-        calib=calib,
-        sequence_from=sequence_from,
-        split=split,
-        split_files=split_files or None,
-        seed=seed,
-        sparse_format=sparse_format,
-        link=not copy,
-        source=source,
-        params=params,
-        batch=batch,
-    ).as_dict()
-    if not as_json:
-        summary = _flat(summary)
-    emit_summary(summary, as_json=as_json, title=f"dataset written to {out_dir}")
+    if splits is not None and split_files:
+        raise click.UsageError("give --splits or --split-file, not both")
+    settings = BuildSettings.with_splits(
+        splits, split_files, sequence_from=sequence_from, seed=seed,
+        sparse_format=sparse_format, link=not copy, source=source, params=params,
+    )  # fmt: skip
+    found = find_build_inputs(
+        settings, rgb=rgb, sparse=sparse, gt=gt, confidence=confidence, calib=calib
+    )
+    job = DatasetJob.for_inputs(settings, found, overwrite=batch.overwrite)
+    summary = run_job(job, found.frames, out_dir, batch=batch, inputs=found.roots, desc="dataset")
+    _summary(summary, as_json, out_dir)
 
 
 def _flat(summary: dict) -> dict:
@@ -266,9 +259,6 @@ def _summary(summary, as_json, out_dir) -> None:
                  title=f"dataset written to {out_dir}")  # fmt: skip
 
 
-_SPLIT_HELP = "Split fractions over sequences [default: 0.8,0.1,0.1]; or name=fraction,..."
-
-
 @dataset.command("nuscenes")
 @click.argument("root", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @output_dir_option(help="Dataset folder (stages in DATASET/.sources/).")
@@ -279,7 +269,7 @@ _SPLIT_HELP = "Split fractions over sequences [default: 0.8,0.1,0.1]; or name=fr
 )
 @sweeps_option(default=5, help="Sweeps of --sensor merged per sample.")
 @resize_option
-@crop_option
+@crop_option(help="Then crop to W x H pixels at (LEFT, TOP), e.g. 800x350+0+100.")
 @click.option(
     "--gt-sensor", default="LIDAR_TOP", show_default=True, metavar="CHANNEL|none",
     help="Ground truth: the projection of this sensor (none: no ground truth).",
@@ -294,11 +284,11 @@ _SPLIT_HELP = "Split fractions over sequences [default: 0.8,0.1,0.1]; or name=fr
     "--night", type=click.Choice(["any", "only", "exclude"]), default="any", show_default=True,
     help="Scenes by their description: all, only night ones, or only day ones.",
 )  # fmt: skip
-@click.option("--split", callback=_split_callback, metavar="TRAIN,VAL,TEST", help=_SPLIT_HELP)
+@splits_option("dataset nuscenes")
 @seed_option(help="Seed of the split assignment.")
 @batch_options
 def nuscenes(root, out_dir, nuscenes_version, camera, sensor, sweeps, resize, crop, gt_sensor,
-             gt_sweeps, jbf, scenes, night, split, seed, batch, as_json):  # fmt: skip
+             gt_sweeps, jbf, scenes, night, splits, seed, batch, as_json):  # fmt: skip
     """nuScenes samples to a dataset: camera image, radar (or LiDAR) input, LiDAR truth.
 
     Per sample: the camera image, resized and cropped with its intrinsics adjusted, the
@@ -309,7 +299,7 @@ def nuscenes(root, out_dir, nuscenes_version, camera, sensor, sweeps, resize, cr
     \b
     Example (the radar paper's setting: 800x450, top 100 rows cut):
       sparsetools dataset nuscenes /data/nuscenes -o out/nus_radar --sweeps 5 \\
-          --resize 0.5 --crop 100,0,350,800 --jbf
+          --resize 0.5 --crop 800x350+0+100 --jbf
     """
     from ..pipeline.dataset.roots import build_nuscenes_dataset
 
@@ -318,7 +308,7 @@ def nuscenes(root, out_dir, nuscenes_version, camera, sensor, sweeps, resize, cr
         resize=resize, crop=crop, gt_sensor=None if gt_sensor.lower() == "none" else gt_sensor,
         gt_sweeps=gt_sweeps, jbf=jbf,
         scenes=tuple(s.strip() for s in scenes.split(",")) if scenes else None,
-        night=night, split=split, seed=seed, batch=batch,
+        night=night, split=splits, seed=seed, batch=batch,
     )  # fmt: skip
     _summary(summary, as_json, out_dir)
 
@@ -330,14 +320,14 @@ def nuscenes(root, out_dir, nuscenes_version, camera, sensor, sweeps, resize, cr
     "--beams", type=click.IntRange(min=1, max=64), default=4, show_default=True,
     help="Beams of the input (the full scan is the ground truth); 64: the full scan.",
 )  # fmt: skip
-@click.option("--split", callback=_split_callback, metavar="TRAIN,VAL,TEST", help=_SPLIT_HELP)
+@splits_option("dataset kitti-raw")
 @click.option(
     "--split-file", "split_files", multiple=True, callback=_split_file_callback,
     metavar="[NAME=]FILE", help="Eigen / Eigen-Zhou split lists (repeat per split).",
 )  # fmt: skip
 @seed_option(help="Seed of the split assignment.")
 @batch_options
-def kitti_raw(root, out_dir, beams, split, split_files, seed, batch, as_json):
+def kitti_raw(root, out_dir, beams, splits, split_files, seed, batch, as_json):
     """KITTI raw drives to a dataset: image, N-beam projected LiDAR, full-scan ground truth.
 
     ROOT is a drive, a date folder (all its drives) or a root of dates. Frames are keyed by
@@ -351,10 +341,10 @@ def kitti_raw(root, out_dir, beams, split, split_files, seed, batch, as_json):
     """
     from ..pipeline.dataset.roots import build_kitti_raw_dataset
 
-    if split is not None and split_files:
-        raise click.UsageError("give --split or --split-file, not both")
+    if splits is not None and split_files:
+        raise click.UsageError("give --splits or --split-file, not both")
     summary = build_kitti_raw_dataset(
-        root, out_dir, beams=None if beams == 64 else beams, split=split,
+        root, out_dir, beams=None if beams == 64 else beams, split=splits,
         split_files=split_files or None, seed=seed, batch=batch,
     )  # fmt: skip
     _summary(summary, as_json, out_dir)
@@ -464,99 +454,34 @@ def info(dataset_dir, as_json):
     from ..pipeline.dataset import dataset_info
 
     d = dataset_info(dataset_dir)
-    if as_json:
-        emit_summary(d, as_json=True)
-        return
-    lines = [
-        ("dataset", d["dataset"]),
-        ("schema version", d["schema_version"]),
-        ("created by", d["created_by"]),
-        ("samples", f"{d['samples']} in {d['sequences']} sequence(s)"),
-    ]
-    for name, s in d["splits"].items():
-        lines.append(
-            (
-                f"  {name}",
-                f"{s['samples']} sample(s), {s['sequences']} sequence(s), {s['with_gt']} with gt",
-            )
-        )
-    lines.append(("image sizes", ", ".join(f"{k} ({v})" for k, v in d["image_sizes"].items())))
-    lines.append(("sources", ", ".join(f"{k} ({v})" for k, v in d["sources"].items())))
-    lines.append(
-        (
-            "with gt / confidence / intrinsics",
-            f"{d['with_gt']} / {d['with_confidence']} / {d['with_intrinsics']}",
-        )
-    )
-    dens = d["density_percent"]
-    npts = d["n_sparse"]
-    lines.append(
-        ("sparse points", f"mean {npts['mean']:.1f}, min {npts['min']:.0f}, max {npts['max']:.0f}")
-    )
-    lines.append(
-        (
-            "density %",
-            f"min {dens['min']:.4g}, median {dens['median']:.4g}, "
-            f"mean {dens['mean']:.4g}, max {dens['max']:.4g}",
-        )
-    )
-    lines.append(
-        (
-            "size",
-            _human(d["total_bytes"])
-            + " ("
-            + ", ".join(f"{k} {_human(v)}" for k, v in d["bytes"].items())
-            + ")",
-        )
-    )
-    if d["missing_files"]:
-        lines.append(("missing files", f"{d['missing_files']} (run 'dataset verify')"))
-    width = max(len(k) for k, _ in lines)
-    for k, v in lines:
-        click.echo(f"{k:<{width}}  {v}")
-
-
-def _human(n: int) -> str:
-    for unit in ("B", "KB", "MB", "GB"):
-        if n < 1024 or unit == "GB":
-            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
-        n /= 1024
-    return str(n)  # pragma: no cover
+    click.echo(json.dumps(d.to_dict(), indent=1) if as_json else d.format())
 
 
 @dataset.command("verify")
 @click.argument("dataset_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.option("--no-hash", is_flag=True, help="Skip the SHA-256 comparison (faster).")
 @click.option(
-    "--workers",
+    "--threads",
     type=click.IntRange(min=1),
     default=1,
     show_default=True,
     help="Threads reading and decoding files.",
 )
+@deprecated("--workers", "--threads", command="dataset verify", dest="threads", metavar="N")
 @json_option(help="Print the report as JSON.")
 @quiet_debug_options
-def verify(dataset_dir, no_hash, workers, as_json):
+def verify(dataset_dir, no_hash, threads, as_json):
     """Check every file: present, decodable, sizes consistent, SHA-256 matching the manifest.
 
     Exits with status 1 and lists the problems when any is found.
 
     \b
     Example:
-      sparsetools dataset verify out/ds
+      sparsetools dataset verify out/ds --threads 4
     """
     from ..pipeline.dataset import verify_dataset
 
-    report = verify_dataset(dataset_dir, check_hashes=not no_hash, workers=workers)
-    if as_json:
-        click.echo(json.dumps(report, indent=1))
-    else:
-        for w in report["warnings"]:
-            click.echo(f"warning: {w}")
-        for p in report["problems"]:
-            click.echo(f"problem: {p}")
-        if not report["problems"]:
-            click.echo(f"{dataset_dir}: {report['samples']} sample(s) verified, no problem")
-    if report["problems"]:
-        click.echo(f"Error: {len(report['problems'])} problem(s) found in {dataset_dir}", err=True)
-        click.get_current_context().exit(1)
+    report = verify_dataset(dataset_dir, check_hashes=not no_hash, threads=threads)
+    click.echo(json.dumps(report.to_dict(), indent=1) if as_json else report.format())
+    if not report.ok:
+        raise click.ClickException(f"{len(report.problems)} problem(s) found in {dataset_dir}")

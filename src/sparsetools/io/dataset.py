@@ -21,10 +21,12 @@ The schema version is stored in the Parquet key-value metadata under
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
 import numpy as np
@@ -43,6 +45,8 @@ __all__ = [
     "PART_SCHEMA",
     "SCHEMA_VERSION",
     "SPARSE_DIR",
+    "ManifestRow",
+    "brief_error",
     "bytes_sha256",
     "check_relative_path",
     "decode_depth_bytes",
@@ -106,6 +110,124 @@ MANIFEST_SCHEMA = pa.schema(
     ]
 )
 
+
+@dataclass(frozen=True, slots=True)
+class ManifestRow:
+    """One sample of the manifest: the fields of :data:`MANIFEST_SCHEMA`, in its order.
+
+    Paths are relative to the dataset folder (``/``-separated); ``None`` is an empty
+    (null) value. A row is immutable: a changed row is ``dataclasses.replace(row, ...)``.
+
+    Attributes
+    ----------
+    id, sequence, frame : str
+        Sample id (``<sequence>/<frame>`` of the input tree), its sequence and frame name.
+    split : str, optional
+    width, height : int
+        Image size, pixels.
+    fx, fy, cx, cy : float, optional
+        Intrinsics, pixels.
+    rgb_path : str
+    sparse_path : str, optional
+        Sparse depth as a KITTI uint16 PNG.
+    sparse_parquet : str, optional
+        The ``sparse/part-*.parquet`` holding the frame's points, at row ``sparse_row``.
+    sparse_row : int, optional
+    gt_path, confidence_path : str, optional
+    n_sparse : int
+        Valid sparse depth pixels.
+    density : float
+        ``n_sparse / (width * height)``.
+    n_gt : int, optional
+        Valid ground-truth pixels.
+    source : str, optional
+        Sensor of the sparse depth (``lidar``, ``lidar-4beam``, ``radar``...).
+    rgb_sha256, sparse_sha256, gt_sha256, confidence_sha256 : str, optional
+        SHA-256 of the stored files (``rgb_sha256`` always).
+    sparse_points_sha256 : str, optional
+        :func:`points_sha256` of the Parquet points.
+    generation_params : str, optional
+        JSON: how the sample was made.
+    frame_index : int, optional
+        Rank in the sequence, frames in natural order (schema version 2).
+    timestamp : float, optional
+        Seconds (schema version 2).
+    T_world_cam : tuple of 16 float, optional
+        Row-major camera pose (schema version 2).
+    """
+
+    id: str
+    sequence: str
+    frame: str
+    split: str | None
+    width: int
+    height: int
+    fx: float | None
+    fy: float | None
+    cx: float | None
+    cy: float | None
+    rgb_path: str
+    sparse_path: str | None
+    sparse_parquet: str | None
+    sparse_row: int | None
+    gt_path: str | None
+    confidence_path: str | None
+    n_sparse: int
+    density: float
+    n_gt: int | None
+    source: str | None
+    rgb_sha256: str
+    sparse_sha256: str | None
+    sparse_points_sha256: str | None
+    gt_sha256: str | None
+    confidence_sha256: str | None
+    generation_params: str | None
+    frame_index: int | None
+    timestamp: float | None
+    T_world_cam: tuple[float, ...] | None
+
+    def __getitem__(self, name: str):
+        """``row["n_sparse"]``: a column by name, as the dict rows of sparsetools 0.2 read."""
+        try:
+            return getattr(self, name)
+        except AttributeError:
+            raise KeyError(name) from None
+
+    def to_dict(self) -> dict:
+        """The row as a dict in schema order (``T_world_cam`` as a list): JSON-ready."""
+        out = {name: getattr(self, name) for name in _ROW_FIELDS}
+        if self.T_world_cam is not None:
+            out["T_world_cam"] = list(self.T_world_cam)
+        return out
+
+    @classmethod
+    def from_dict(cls, row: Mapping) -> ManifestRow:
+        """A row from a mapping of column -> value (missing columns are empty, others ignored)."""
+        values = [row.get(name) for name in _ROW_FIELDS]
+        if values[-1] is not None:
+            values[-1] = tuple(values[-1])
+        return cls(*values)
+
+    @staticmethod
+    def to_table(rows: Iterable[ManifestRow]) -> pa.Table:
+        """The rows as an Arrow table of exactly :data:`MANIFEST_SCHEMA` (columns, order, types)."""
+        rows = list(rows)
+        columns = [
+            pa.array([getattr(r, f.name) for r in rows], type=f.type) for f in MANIFEST_SCHEMA
+        ]
+        return pa.Table.from_arrays(columns, schema=MANIFEST_SCHEMA)
+
+    @classmethod
+    def from_table(cls, table: pa.Table) -> list[ManifestRow]:
+        """The rows of a manifest table (columns beyond :data:`MANIFEST_SCHEMA` are ignored)."""
+        columns = [table.column(name).to_pylist() for name in _ROW_FIELDS]
+        columns[-1] = [None if m is None else tuple(m) for m in columns[-1]]
+        return [cls(*values) for values in zip(*columns, strict=True)]
+
+
+#: ManifestRow's fields: MANIFEST_SCHEMA's names, in its order (a test holds them equal).
+_ROW_FIELDS = tuple(f.name for f in dataclasses.fields(ManifestRow))
+
 PART_SCHEMA = pa.schema(
     [
         pa.field("id", pa.string(), nullable=False),
@@ -120,7 +242,7 @@ PART_SCHEMA = pa.schema(
 PATH_COLUMNS = ("rgb_path", "sparse_path", "sparse_parquet", "gt_path", "confidence_path")
 
 
-def _brief(exc: BaseException) -> str:
+def brief_error(exc: BaseException) -> str:
     """An exception's text on one line (Arrow's messages span several)."""
     return " ".join(str(exc).split()) or type(exc).__name__
 
@@ -365,7 +487,7 @@ def read_manifest(path: str | os.PathLike) -> tuple[pa.Table, dict]:
     try:
         table = pq.read_table(path)
     except (pa.ArrowException, OSError) as exc:
-        raise FormatError(f"{path}: cannot read the manifest ({_brief(exc)})") from exc
+        raise FormatError(f"{path}: cannot read the manifest ({brief_error(exc)})") from exc
     meta = table.schema.metadata or {}
     raw = meta.get(METADATA_VERSION_KEY)
     if raw is None:
@@ -389,7 +511,7 @@ def read_manifest(path: str | os.PathLike) -> tuple[pa.Table, dict]:
     try:
         info = json.loads(meta.get(METADATA_INFO_KEY, b"{}").decode())
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise FormatError(f"{path}: corrupt dataset metadata ({_brief(exc)})") from exc
+        raise FormatError(f"{path}: corrupt dataset metadata ({brief_error(exc)})") from exc
     if not isinstance(info, dict):
         raise FormatError(f"{path}: corrupt dataset metadata (not a JSON object)")
     info["schema_version"] = version
@@ -402,7 +524,7 @@ def read_manifest(path: str | os.PathLike) -> tuple[pa.Table, dict]:
         table.validate(full=True)  # Parquet does not check that strings are UTF-8
     except (pa.ArrowInvalid, pa.ArrowNotImplementedError) as exc:
         raise FormatError(
-            f"{path}: manifest columns have unexpected types ({_brief(exc)})"
+            f"{path}: manifest columns have unexpected types ({brief_error(exc)})"
         ) from exc
     ids = table.column("id").to_pylist()
     if len(set(ids)) != len(ids):
@@ -454,7 +576,7 @@ def read_sparse_part(path: str | os.PathLike) -> pa.Table:
     try:
         table = pq.read_table(path)
     except (pa.ArrowException, OSError) as exc:
-        raise FormatError(f"{path}: cannot read the sparse part ({_brief(exc)})") from exc
+        raise FormatError(f"{path}: cannot read the sparse part ({brief_error(exc)})") from exc
     missing = [n for n in PART_SCHEMA.names if n not in table.column_names]
     if missing:
         raise FormatError(f"{path}: sparse part lacks column(s) {', '.join(missing)}")
@@ -464,7 +586,7 @@ def read_sparse_part(path: str | os.PathLike) -> pa.Table:
         return table
     except (pa.ArrowInvalid, pa.ArrowNotImplementedError) as exc:
         raise FormatError(
-            f"{path}: sparse part columns have unexpected types ({_brief(exc)})"
+            f"{path}: sparse part columns have unexpected types ({brief_error(exc)})"
         ) from exc
 
 

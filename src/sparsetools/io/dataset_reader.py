@@ -19,7 +19,8 @@ from ..errors import FormatError, ParameterError
 from .dataset import (
     MANIFEST_NAME,
     PART_SCHEMA,
-    _brief,
+    ManifestRow,
+    brief_error,
     depth_to_points,
     part_rows,
     points_to_depth,
@@ -46,7 +47,9 @@ class _PartCache:
             try:
                 pf = pq.ParquetFile(path)
             except (pa.ArrowException, OSError) as exc:
-                raise FormatError(f"{path}: cannot read the sparse part ({_brief(exc)})") from exc
+                raise FormatError(
+                    f"{path}: cannot read the sparse part ({brief_error(exc)})"
+                ) from exc
             starts = [0]
             for g in range(pf.num_row_groups):
                 starts.append(starts[-1] + pf.metadata.row_group(g).num_rows)
@@ -62,7 +65,9 @@ class _PartCache:
                 table = pf.read_row_group(g, columns=PART_SCHEMA.names).cast(PART_SCHEMA)
                 table.validate(full=True)
             except (pa.ArrowException, OSError) as exc:
-                raise FormatError(f"{path}: cannot decode row group {g} ({_brief(exc)})") from exc
+                raise FormatError(
+                    f"{path}: cannot decode row group {g} ({brief_error(exc)})"
+                ) from exc
             rows = list(part_rows(table))
             self.groups[key] = rows
             while len(self.groups) > self.max_groups:
@@ -122,8 +127,8 @@ class DatasetReader:
             table = table.filter(pc.equal(table.column("split"), split))
         self.split_name = split
         self.manifest = table
-        self._rows = table.to_pylist()
-        self._index = {r["id"]: i for i, r in enumerate(self._rows)}
+        self._rows = ManifestRow.from_table(table)
+        self._index = {r.id: i for i, r in enumerate(self._rows)}
         self._parts = _PartCache()
 
     # -- container protocol
@@ -153,7 +158,7 @@ class DatasetReader:
     # -- views
     @property
     def ids(self) -> list[str]:
-        return [r["id"] for r in self._rows]
+        return [r.id for r in self._rows]
 
     @property
     def splits(self) -> list[str]:
@@ -167,8 +172,8 @@ class DatasetReader:
         view._init(self._all, self.info, name)
         return view
 
-    def row(self, key: int | str) -> dict:
-        """The manifest row of a sample (by position or id) as a dict."""
+    def row(self, key: int | str) -> ManifestRow:
+        """The manifest row of a sample (by position or id)."""
         if isinstance(key, str):
             if key not in self._index:
                 raise ParameterError(f"no sample '{key}' in {self}")
@@ -186,31 +191,31 @@ class DatasetReader:
     def sparse_points(self, key: int | str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(u, v, depth) of a sample's sparse depth (uint16, uint16, float32 metres)."""
         r = self.row(key)
-        if r["sparse_parquet"] is not None:
+        if r.sparse_parquet is not None:
             fid, u, v, d, h, w = self._parts.row(
-                self.path(r["sparse_parquet"], what="sparse_parquet"), int(r["sparse_row"])
+                self.path(r.sparse_parquet, what="sparse_parquet"), int(r.sparse_row)
             )
-            if fid != r["id"] or (h, w) != (r["height"], r["width"]):
+            if fid != r.id or (h, w) != (r.height, r.width):
                 raise FormatError(
-                    f"{r['sparse_parquet']} row {r['sparse_row']} holds '{fid}' ({w}x{h}), "
-                    f"expected '{r['id']}' ({r['width']}x{r['height']})"
+                    f"{r.sparse_parquet} row {r.sparse_row} holds '{fid}' ({w}x{h}), "
+                    f"expected '{r.id}' ({r.width}x{r.height})"
                 )
             return u, v, d
         return depth_to_points(self._read_sparse_png(r))
 
-    def _read_sparse_png(self, r: dict) -> np.ndarray:
-        if r["sparse_path"] is None:
-            raise FormatError(f"sample '{r['id']}' has no sparse depth")
+    def _read_sparse_png(self, r: ManifestRow) -> np.ndarray:
+        if r.sparse_path is None:
+            raise FormatError(f"sample '{r.id}' has no sparse depth")
         return self._checked(
-            read_depth_png(self.path(r["sparse_path"], what="sparse_path")), r, "sparse"
+            read_depth_png(self.path(r.sparse_path, what="sparse_path")), r, "sparse"
         )
 
     @staticmethod
-    def _checked(arr: np.ndarray, r: dict, what: str) -> np.ndarray:
-        if arr.shape[:2] != (r["height"], r["width"]):
+    def _checked(arr: np.ndarray, r: ManifestRow, what: str) -> np.ndarray:
+        if arr.shape[:2] != (r.height, r.width):
             raise FormatError(
-                f"sample '{r['id']}': {what} is {arr.shape[1]}x{arr.shape[0]}, "
-                f"the manifest says {r['width']}x{r['height']}"
+                f"sample '{r.id}': {what} is {arr.shape[1]}x{arr.shape[0]}, "
+                f"the manifest says {r.width}x{r.height}"
             )
         return arr
 
@@ -233,33 +238,33 @@ class DatasetReader:
             ``intrinsics`` (3, 3) float64 K or None.
         """
         r = self.row(key)
-        rgb = self._checked(read_image(self.path(r["rgb_path"], what="rgb_path")), r, "rgb")
-        if r["sparse_parquet"] is not None:
+        rgb = self._checked(read_image(self.path(r.rgb_path, what="rgb_path")), r, "rgb")
+        if r.sparse_parquet is not None:
             u, v, d = self.sparse_points(key)
-            sparse = points_to_depth(u, v, d, r["height"], r["width"])
+            sparse = points_to_depth(u, v, d, r.height, r.width)
         else:
             sparse = self._read_sparse_png(r)
         gt = None
-        if r["gt_path"] is not None:
-            gt = self._checked(read_depth_file(self.path(r["gt_path"], what="gt_path")), r, "gt")
+        if r.gt_path is not None:
+            gt = self._checked(read_depth_file(self.path(r.gt_path, what="gt_path")), r, "gt")
         confidence = None
-        if r["confidence_path"] is not None:
+        if r.confidence_path is not None:
             confidence = self._checked(
-                read_confidence_file(self.path(r["confidence_path"], what="confidence_path")),
+                read_confidence_file(self.path(r.confidence_path, what="confidence_path")),
                 r,
                 "confidence",
             )
         K = None
-        if r["fx"] is not None:
+        if r.fx is not None:
             K = np.array(
-                [[r["fx"], 0.0, r["cx"]], [0.0, r["fy"], r["cy"]], [0.0, 0.0, 1.0]],
+                [[r.fx, 0.0, r.cx], [0.0, r.fy, r.cy], [0.0, 0.0, 1.0]],
                 dtype=np.float64,
             )
         return {
-            "id": r["id"],
-            "sequence": r["sequence"],
-            "frame": r["frame"],
-            "split": r["split"],
+            "id": r.id,
+            "sequence": r.sequence,
+            "frame": r.frame,
+            "split": r.split,
             "rgb": rgb,
             "sparse": sparse,
             "gt": gt,

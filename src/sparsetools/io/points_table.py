@@ -13,8 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FormatError, ParameterError
-from .dataset import PART_SCHEMA
-from .dataset import _brief as brief_error
+from .dataset import PART_SCHEMA, brief_error
 from .sources import FrameKey
 
 __all__ = ["read_points_table", "sparse_part_table"]

@@ -1,13 +1,21 @@
-"""``dataset build / info / verify``: the batch jobs behind the commands, one module per concern.
+"""``dataset build / info / verify``: the batch job behind the commands, one module per concern.
 
 - :mod:`.splits`: split fractions, split files, sequence names, assignment by sequence;
-- :mod:`.staging`: the per-frame job and its staging record;
-- :mod:`.build`: indexing and matching the inputs, the build, merging into the manifest;
+- :mod:`.build`: the settings, finding and matching the inputs, the job (:class:`DatasetJob`);
+- :mod:`.staging`: one frame's work and its staging record;
+- :mod:`.merge`: merging the staged frames into the manifest;
 - :mod:`.inspect`: ``info`` and ``verify``.
 """
 
-from .build import SPARSE_FORMATS, BuildSettings, build_dataset
-from .inspect import dataset_info, verify_dataset
+from .build import (
+    SPARSE_FORMATS,
+    BuildInputs,
+    BuildSettings,
+    DatasetJob,
+    build_dataset,
+    find_build_inputs,
+)
+from .inspect import DatasetInfo, VerifyReport, dataset_info, verify_dataset
 from .splits import (
     DEFAULT_SPLIT,
     assign_splits,
@@ -16,22 +24,35 @@ from .splits import (
     read_split_file,
     sequence_resolver,
 )
-from .staging import STAGING, DatasetFrameInput, DatasetJob, read_record, write_record
+from .staging import (
+    STAGING,
+    DatasetFrameInput,
+    DatasetFrameStats,
+    read_record,
+    read_staged,
+    write_record,
+)
 
 __all__ = [
     "DEFAULT_SPLIT",
     "SPARSE_FORMATS",
     "STAGING",
+    "BuildInputs",
     "BuildSettings",
     "DatasetFrameInput",
+    "DatasetFrameStats",
+    "DatasetInfo",
     "DatasetJob",
+    "VerifyReport",
     "assign_splits",
     "build_dataset",
     "dataset_info",
+    "find_build_inputs",
     "match_split_lines",
     "parse_split_fractions",
     "read_record",
     "read_split_file",
+    "read_staged",
     "sequence_resolver",
     "verify_dataset",
     "write_record",

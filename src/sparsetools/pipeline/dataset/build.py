@@ -1,51 +1,61 @@
-"""``dataset build``: index the inputs, stage every frame, merge into the manifest.
+"""``dataset build``: find the inputs, stage every frame, merge into the manifest.
 
-Build in three stages, so that an interrupted run resumes and appending works:
+A build runs in three steps, so that an interrupted run resumes and appending works:
 
-1. **Plan** (main process): index the input folders, match files by frame key, derive each
-   frame's sequence, drop frames already in the dataset (unless ``overwrite``).
-2. **Frames** (:mod:`.staging`, one :class:`FrameTask` each, any executor).
-3. **Finalize** (main process): merge the existing manifest with every staged record,
-   assign splits (by sequence), write the new ``sparse/part-*.parquet`` files, then the
-   manifest atomically, then delete parts no longer referenced and the staging folder.
+1. **Find** (:func:`find_build_inputs`, main process): index the input folders, match files
+   by frame key, derive each frame's sequence and the split the inputs give it.
+2. **Frames** (:class:`DatasetJob`, one :class:`FrameTask` each, any executor, through
+   :func:`~sparsetools.pipeline.core.run_job`): :func:`.staging.stage_frame`.
+3. **Finish** (:meth:`DatasetJob.finish`, main process): merge the existing manifest with
+   every staged record, assign splits (by sequence), write the new ``sparse/part-*.parquet``
+   files, then the manifest atomically, then delete parts no longer referenced and the
+   staging folder.
 """
 
 from __future__ import annotations
 
 import logging
 import os
-import re
-import shutil
 import time
-from collections import Counter, defaultdict
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..._version import __version__
 from ...errors import FormatError, OutputError, ParameterError
 from ...io.atomic import TMP_PREFIX
-from ...io.dataset import (
-    MANIFEST_NAME,
-    MANIFEST_SCHEMA,
-    SPARSE_DIR,
-    read_manifest,
-    read_sparse_part,
-    resolve_in_dataset,
-    write_manifest,
-    write_sparse_part,
-)
-from ...io.points_table import read_points_table, sparse_part_table
+from ...io.dataset import MANIFEST_NAME, SPARSE_DIR, read_manifest
+from ...io.points_table import read_points_table
 from ...io.provenance import RECORD_DIR
 from ...io.sources import FrameKey, index_input, is_shared_calibration, match_keys
+from ...validate import check_choice, check_int_range
 from ..batch import Batch, RunSummary
-from ..core import FrameTask, RunSpec, check_output_dir, run_frames
-from .splits import DEFAULT_SPLIT, assign_splits, parse_split_fractions, sequence_resolver
-from .splits import split_file_assignments as _split_file_assignments
-from .staging import STAGING, DatasetFrameInput, DatasetJob
-from .staging import read_record as _read_record
+from ..core import BatchJob, FrameTask, run_job
+from ..provenance import settings_dict
+from .merge import merge_staged
+from .splits import (
+    DEFAULT_SPLIT,
+    parse_split_fractions,
+    sequence_resolver,
+    split_file_assignments,
+)
+from .staging import (
+    STAGES,
+    STAGING,
+    DatasetFrameInput,
+    DatasetFrameStats,
+    sample_files,
+    stage_frame,
+)
 
-__all__ = ["SPARSE_FORMATS", "BuildSettings", "build_dataset"]
+__all__ = [
+    "SPARSE_FORMATS",
+    "BuildInputs",
+    "BuildSettings",
+    "DatasetJob",
+    "build_dataset",
+    "find_build_inputs",
+]
 
 log = logging.getLogger(__name__)
 
@@ -57,7 +67,96 @@ CONF_SUFFIX = "_conf"
 #: Where the one-command routes (``dataset nuscenes`` / ``kitti-raw``) keep what they prepare
 #: (camera images, projected maps): each a sparsetools output folder with its own record.
 SOURCES_DIR = ".sources"
-_PART_RE = re.compile(r"^part-(\d{5,})\.parquet$")
+
+
+# -- settings --------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class BuildSettings:
+    """What a dataset's samples depend on: recorded, and compared on every run that adds to it.
+
+    Attributes
+    ----------
+    sparse_format : {"png", "parquet", "both"}
+    sparse_name, gt_name : str, optional
+        KITTI depth-completion map sets of the sparse input and the ground truth.
+    link : bool
+        Reflink the input files where the file system can, instead of copying them.
+    source : str
+        Sensor of the sparse depth (``lidar``, ``lidar-4beam``, ``radar``...).
+    params : dict, optional
+        Generation parameters stored (as JSON) in every new row.
+    sequence_from : str
+        ``parent`` or ``regex:PATTERN`` (see :func:`.splits.sequence_resolver`).
+    split : mapping of split -> fraction, optional
+        Fractions of the sequences per split (``--splits``). None: the split comes from
+        ``split_files``, or without them from the inputs' tree (``--splits tree``).
+    split_files : tuple, optional
+        Split lists, each a path or a ``(name, path)`` pair (``--split-file``).
+    seed : int
+        Seed of the split assignment.
+    """
+
+    sparse_format: str = "both"
+    sparse_name: str | None = None
+    gt_name: str | None = None
+    link: bool = False
+    source: str = "lidar"
+    params: dict | None = None
+    sequence_from: str = "parent"
+    split: Mapping[str, float] | None = field(
+        default_factory=lambda: dict(DEFAULT_SPLIT), metadata={"option": "--splits"}
+    )
+    split_files: tuple | None = field(default=None, metadata={"option": "--split-file"})
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        check_choice(self.sparse_format, "sparse_format", SPARSE_FORMATS)
+        if not str(self.source).strip():
+            raise ParameterError("must not be empty", param="source")
+        sequence_resolver(self.sequence_from, "sequence")  # refuses a bad spec
+        if self.split is not None and self.split_files:
+            raise ParameterError("give split fractions or split files, not both")
+        if self.split is not None:
+            object.__setattr__(self, "split", parse_split_fractions(self.split))
+        if self.split_files is not None:
+            object.__setattr__(self, "split_files", tuple(self.split_files) or None)
+        object.__setattr__(self, "link", bool(self.link))
+        object.__setattr__(self, "source", str(self.source))
+        object.__setattr__(self, "seed", check_int_range(self.seed, "seed"))
+
+    @classmethod
+    def with_splits(
+        cls,
+        splits: str | Mapping[str, float] | None = None,
+        split_files: Iterable[str | tuple[str, str]] | None = None,
+        **settings,
+    ) -> BuildSettings:
+        """Settings from a choice of splits as the command line gives it.
+
+        ``splits``: fractions (``0.8,0.1,0.1``, ``train=0.7,val=0.3`` or a mapping),
+        ``"tree"`` (the split the inputs' tree gives), or None: the default fractions
+        (0.8/0.1/0.1 train/val/test) unless ``split_files`` are given.
+        """
+        split_files = tuple(split_files or ())
+        if splits is not None and split_files:
+            raise ParameterError("give split fractions or split files, not both")
+        if split_files or splits == "tree":
+            return cls(split=None, split_files=split_files or None, **settings)
+        return cls(split=DEFAULT_SPLIT if splits is None else splits, **settings)
+
+    @property
+    def split_from_tree(self) -> bool:
+        """Whether each frame's split is the one its input tree gives (KITTI depth
+        completion ``train`` / ``val``, ``val_selection``)."""
+        return self.split is None and not self.split_files
+
+    def split_method(self) -> dict:
+        """How splits are assigned, as the manifest's metadata says (without split-file counts)."""
+        if self.split_files:
+            return {"method": "split-file"}
+        if self.split_from_tree:
+            return {"method": "tree"}
+        return {"method": "sequence", "fractions": dict(self.split), "seed": self.seed}
 
 
 # -- input indexing ----------------------------------------------------------------------------------
@@ -74,22 +173,6 @@ def _confidence_index(path, option: str) -> dict[FrameKey, Path]:
             )
         out[key] = f
     return out
-
-
-@dataclass(frozen=True)
-class BuildSettings:
-    """What a dataset's samples depend on: compared on every run that adds to it."""
-
-    sparse_format: str = "both"
-    sparse_name: str | None = None
-    gt_name: str | None = None
-    link: bool = False
-    source: str = "lidar"
-    params: dict | None = None
-    sequence_from: str = "parent"
-    split: dict | None = field(default=None, metadata={"option": "--split"})
-    split_files: tuple | None = field(default=None, metadata={"option": "--split-file"})
-    seed: int = 0
 
 
 @dataclass(frozen=True)
@@ -181,23 +264,253 @@ def _index(rgb, sparse, gt, confidence, calib, *, names=(None, None), camera=2) 
     )  # fmt: skip
 
 
-# -- build ---------------------------------------------------------------------------------------
-def _dataset_state(out: Path) -> str:
-    """'new', 'dataset' (has a manifest) or 'partial' (staged frames, no manifest yet)."""
-    if (out / MANIFEST_NAME).is_file():
-        return "dataset"
-    if (out / STAGING).is_dir():
-        return "partial"
-    if out.exists() and any(
-        p
-        for p in out.iterdir()
-        if p.name not in ("rgb", SPARSE_DIR, "gt", "confidence", RECORD_DIR, SOURCES_DIR)
-    ):
-        raise OutputError(
-            f"{out} exists and is not a sparsetools dataset (no {MANIFEST_NAME}); "
-            "choose a new or empty folder"
+# -- finding the frames ----------------------------------------------------------------------------
+@dataclass(frozen=True)
+class BuildInputs:
+    """What :func:`find_build_inputs` found.
+
+    Attributes
+    ----------
+    frames : list of DatasetFrameInput
+        One per frame to build, in frame-key order.
+    roots : tuple of Path
+        The input paths given (the dataset may not be inside one of them).
+    unmatched : dict of str -> int
+        Frames left out, by reason (``rgb_without_sparse``, ``without_gt``,
+        ``not_in_split_files``, ...).
+    split_lists : dict, optional
+        With split files: lines ``listed`` in them and lines matching no frame (``missing``).
+    seconds : float
+        Time spent indexing and matching.
+    """
+
+    frames: list[DatasetFrameInput]
+    roots: tuple[Path, ...]
+    unmatched: dict[str, int]
+    split_lists: dict[str, int] | None = None
+    seconds: float = 0.0
+
+
+def find_build_inputs(
+    settings: BuildSettings,
+    *,
+    rgb: str | os.PathLike,
+    sparse: str | os.PathLike,
+    gt: str | os.PathLike | None = None,
+    confidence: str | os.PathLike | None = None,
+    calib: str | os.PathLike | None = None,
+    camera: int = 2,
+) -> BuildInputs:
+    """The frames of a build: every frame that has all its inputs (see :func:`build_dataset`
+    for the inputs), its sequence, and its split when split files or the tree give it.
+
+    Raises
+    ------
+    ParameterError
+        No frame has all its inputs, none is in the split files, or the tree gives no split.
+    """
+    t_start = time.perf_counter()
+    inputs = _index(
+        rgb, sparse, gt, confidence, calib, names=(settings.sparse_name, settings.gt_name),
+        camera=camera,
+    )  # fmt: skip
+    keys = inputs.keys
+    for k in keys:
+        if k.frame.startswith(TMP_PREFIX):
+            raise ParameterError(f"frame id {str(k)!r} is reserved")
+    seq_fn = sequence_resolver(settings.sequence_from, Path(rgb).resolve().name or "sequence")
+    parent = settings.sequence_from == "parent"
+    sequence = {k: (k.sequence if parent and k.sequence else seq_fn(str(k))) for k in keys}
+    unmatched = dict(inputs.unmatched)
+    split_of: dict[FrameKey, str] = {}
+    split_lists = None
+    if settings.split_files:
+        assignment, split_lists = split_file_assignments(
+            settings.split_files, {str(k): sequence[k] for k in keys}
         )
-    return "new"
+        unmatched["not_in_split_files"] = sum(1 for k in keys if str(k) not in assignment)
+        keys = [k for k in keys if str(k) in assignment]
+        if not keys:
+            raise ParameterError("no frame is listed in the split file(s)")
+        split_of = {k: assignment[str(k)] for k in keys}
+    elif settings.split_from_tree:
+        if not inputs.splits:
+            raise ParameterError(
+                "tree: the inputs' layout gives no split (only KITTI depth-completion trees and "
+                "val_selection_cropped do)",
+                param="--splits",
+            )
+        unmatched["without_tree_split"] = sum(1 for k in keys if k not in inputs.splits)
+        keys = [k for k in keys if k in inputs.splits]
+        split_of = {k: inputs.splits[k] for k in keys}
+    given = {"rgb": rgb, "sparse": sparse, "gt": gt, "confidence": confidence, "calib": calib}
+    frames = [_frame_input(k, sequence[k], split_of.get(k), inputs, given) for k in keys]
+    roots = tuple(Path(p) for p in (rgb, sparse, gt, confidence) if p is not None)
+    return BuildInputs(frames, roots, unmatched, split_lists, time.perf_counter() - t_start)
+
+
+def _frame_input(
+    k: FrameKey, seq: str, split: str | None, inputs: _Inputs, given: dict
+) -> DatasetFrameInput:
+    """One frame's typed input record: its files (or points) and where each came from."""
+    rgb_file = inputs.rgb[k]
+    desc = {"rgb": _rel_desc(rgb_file, given["rgb"])}
+    sparse_file = sparse_points = sparse_table = None
+    if inputs.sparse_is_table:
+        sparse_points = inputs.sparse[k]
+        sparse_table = str(inputs.sparse_path)
+        desc["sparse"] = inputs.sparse_path.name
+    else:
+        sparse_file = str(inputs.sparse[k])
+        desc["sparse"] = _rel_desc(inputs.sparse[k], given["sparse"])
+    extra = {}
+    for kind, found in inputs.extra.items():
+        extra[kind] = str(found[k])
+        desc[kind] = _rel_desc(found[k], given[kind])
+    cal = inputs.calib.get(k)
+    if cal is not None:
+        desc["calib"] = _rel_desc(Path(cal), given["calib"]) if given["calib"] else Path(cal).name
+    return DatasetFrameInput(
+        id=str(k),
+        sequence=seq,
+        frame=k.frame,
+        rgb=str(rgb_file),
+        sparse=sparse_file,
+        sparse_points=sparse_points,
+        sparse_table=sparse_table,
+        gt=extra.get("gt"),
+        confidence=extra.get("confidence"),
+        calib=cal,
+        timestamp=inputs.times.get(k),
+        pose=inputs.poses.get(k),
+        split=split,
+        inputs_desc=tuple(sorted(desc.items())),
+    )
+
+
+def _rel_desc(path: Path, folder) -> str:
+    folder = Path(folder)
+    try:
+        return Path(path).relative_to(folder).as_posix() if folder.is_dir() else folder.name
+    except ValueError:
+        return Path(path).name
+
+
+# -- the job -----------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class DatasetJob(BatchJob[DatasetFrameInput]):
+    """``dataset build``: stage every frame (:func:`.staging.stage_frame`), then merge the
+    staged frames into the dataset (:meth:`finish`).
+
+    Attributes
+    ----------
+    settings : BuildSettings
+    unmatched, split_lists, plan_seconds
+        What finding the inputs reported (:class:`BuildInputs`), for the summary and the
+        manifest's metadata.
+    overwrite : bool
+        The run replaces the dataset (``--overwrite``): rows of frames it does not build are
+        dropped.
+    frames_per_part : int
+        Frames per ``sparse/part-*.parquet`` file.
+    """
+
+    command = "dataset build"
+    noun = "a dataset"
+    stats_type = DatasetFrameStats
+
+    settings: BuildSettings
+    unmatched: Mapping[str, int] = field(default_factory=dict)
+    split_lists: Mapping[str, int] | None = None
+    plan_seconds: float = 0.0
+    overwrite: bool = False
+    frames_per_part: int = 1000
+
+    def __post_init__(self) -> None:
+        check_int_range(self.frames_per_part, "frames_per_part", low=1)
+
+    @classmethod
+    def for_inputs(
+        cls, settings: BuildSettings, found: BuildInputs, *, overwrite: bool = False,
+        frames_per_part: int = 1000,
+    ) -> DatasetJob:  # fmt: skip
+        """The job building the frames ``found`` (``overwrite``: ``batch.overwrite``)."""
+        return cls(
+            settings, found.unmatched, found.split_lists, found.seconds, overwrite=overwrite,
+            frames_per_part=frames_per_part,
+        )  # fmt: skip
+
+    def record(self) -> dict:
+        # Split files are recorded as sparsetools 0.2 wrote them (str of each item), so that
+        # its datasets resume.
+        record = settings_dict(self.settings)
+        if self.settings.split_files:
+            record["split_files"] = [str(f) for f in self.settings.split_files]
+        return record
+
+    def tasks(self, frames: list[DatasetFrameInput], out_dir: Path) -> list[FrameTask]:
+        _check_dataset_folder(out_dir)
+        fmt = self.settings.sparse_format
+        tasks = [
+            FrameTask(x.id, x, {role: out_dir / rel for role, rel in sample_files(x, fmt).items()},
+                      x.sources)
+            for x in frames
+        ]  # fmt: skip
+        _check_inputs_outside(out_dir, tasks)
+        return tasks
+
+    def shared_outputs(self, out_dir: Path) -> tuple[Path, ...]:
+        return (out_dir / MANIFEST_NAME,)
+
+    def is_complete(self, out_dir: Path) -> Callable[[FrameTask], bool]:
+        """A frame is complete when its files exist and it is staged or in the manifest."""
+        manifest = out_dir / MANIFEST_NAME
+        merged = set()
+        if manifest.is_file():
+            merged = set(read_manifest(manifest)[0].column("id").to_pylist())
+
+        def complete(task: FrameTask) -> bool:
+            files = [p for role, p in task.outputs.items() if role != "staged"]
+            return all(p.is_file() for p in files) and (
+                task.outputs["staged"].is_file() or task.inputs.id in merged
+            )
+
+        return complete
+
+    def __call__(self, task: FrameTask[DatasetFrameInput]) -> DatasetFrameStats:
+        return stage_frame(task.inputs, task.outputs, self.settings)
+
+    def finish(self, summary: RunSummary, tasks: list[FrameTask], out_dir: Path) -> dict:
+        """Merge the staged frames into the manifest and parts; the build's totals."""
+        t0 = time.perf_counter()
+        s = self.settings
+        split = s.split_method()
+        if s.split_files:
+            split.update(self.split_lists or {})
+        info = {"created_by": f"sparsetools {__version__}", "sparse_format": s.sparse_format,
+                "split": split}  # fmt: skip
+        # split files and the tree give each frame its split; fractions split by sequence
+        given = None if s.split is not None else {t.inputs.id: t.inputs.split for t in tasks}
+        merged = merge_staged(
+            out_dir,
+            fractions=s.split,
+            seed=s.seed,
+            assignment=given,
+            info=info,
+            frames_per_part=self.frames_per_part,
+            only={t.inputs.id for t in tasks} if self.overwrite else None,
+        )
+        stats = self.stats(summary)
+        stages = {"t_plan": round(self.plan_seconds, 4)}
+        stages.update({k: round(sum(getattr(x, k) for x in stats), 4) for k in STAGES})
+        stages["t_finalize"] = round(time.perf_counter() - t0, 4)
+        return {
+            **merged,
+            "unmatched": dict(self.unmatched),
+            "linked": sum(x.linked for x in stats),
+            "stage_seconds": stages,
+            "output": str(out_dir),
+        }
 
 
 def build_dataset(
@@ -253,6 +566,7 @@ def build_dataset(
     split : str or mapping, optional
         Fractions per split (default 0.8/0.1/0.1 train/val/test), assigned by sequence; or
         ``"tree"``: the split the input tree gives (KITTI depth completion train / val).
+        The command line's ``--splits``.
     split_files : iterable, optional
         Split lists (``NAME=PATH`` or a path whose name contains train/val/test); frames
         not listed are left out. Exclusive with ``split``.
@@ -260,9 +574,8 @@ def build_dataset(
         Split seed.
     sparse_format : {"png", "parquet", "both"}
     link : bool
-        Symbolically link the input files into the dataset instead of copying them (the
-        dataset then never changes an input's data or permissions; moving the inputs breaks
-        the links). Converted files (.npy -> PNG) are always written.
+        Reflink the input files into the dataset where the file system can (copy-on-write:
+        the dataset never shares an inode with an input), else copy them.
     source : str
         Sensor that produced the sparse depth (``lidar``, ``lidar-4beam``, ``radar``...).
     params : dict, optional
@@ -275,6 +588,8 @@ def build_dataset(
     batch : Batch, optional
         Executor, error policy, progress; ``overwrite``: rebuild every frame given and drop
         the frames of earlier runs (the dataset then holds this run's frames only).
+    frames_per_part : int
+        Frames per ``sparse/part-*.parquet`` file.
 
     Returns
     -------
@@ -286,350 +601,44 @@ def build_dataset(
         links, ``t_stage``: staging records) and ``t_finalize`` (Parquet parts and manifest).
     """
     batch = batch or Batch()
-    if sparse_format not in SPARSE_FORMATS:
-        raise ParameterError(
-            f"must be one of {', '.join(SPARSE_FORMATS)}, got {sparse_format!r}",
-            param="sparse_format",
-        )
-    if split is not None and split_files:
-        raise ParameterError("give split fractions or split files, not both")
-    if frames_per_part < 1:
-        raise ParameterError("frames_per_part must be >= 1")
-    from_tree = split == "tree"
-    fractions = (
-        parse_split_fractions(split) if split is not None and not from_tree else dict(DEFAULT_SPLIT)
-    )
-    if not str(source).strip():
-        raise ParameterError("must not be empty", param="source")
-    t_start = time.perf_counter()
-    inputs = _index(rgb, sparse, gt, confidence, calib, names=(sparse_name, gt_name), camera=camera)
-    keys = inputs.keys
-    for k in keys:
-        if k.frame.startswith(TMP_PREFIX):
-            raise ParameterError(f"frame id {str(k)!r} is reserved")
-    seq_fn = sequence_resolver(sequence_from, Path(rgb).resolve().name or "sequence")
-    sequence = {k: (k.sequence if sequence_from == "parent" and k.sequence else seq_fn(str(k)))
-                for k in keys}  # fmt: skip
-    ids = {k: str(k) for k in keys}
-
-    assignment: dict[str, str] | None = None
-    split_report = {}
-    unmatched = dict(inputs.unmatched)
-    if split_files:
-        assignment, split_report = _split_file_assignments(
-            split_files, {ids[k]: sequence[k] for k in keys}
-        )
-        unmatched["not_in_split_files"] = sum(1 for k in keys if ids[k] not in assignment)
-        keys = [k for k in keys if ids[k] in assignment]
-        if not keys:
-            raise ParameterError("no frame is listed in the split file(s)")
-    elif from_tree:
-        if not inputs.splits:
-            raise ParameterError(
-                "tree: the inputs' layout gives no split (only KITTI depth-completion trees and "
-                "val_selection_cropped do)",
-                param="split",
-            )
-        assignment = {ids[k]: inputs.splits[k] for k in keys if k in inputs.splits}
-        unmatched["without_tree_split"] = sum(1 for k in keys if ids[k] not in assignment)
-        keys = [k for k in keys if ids[k] in assignment]
-        split_report = {"method": "tree"}
-
-    paths = [p for p in (rgb, sparse, gt, confidence) if p is not None]
-    out = check_output_dir(out_dir, [p for p in paths if Path(p).is_dir()])
-    real_out = out.resolve()
-    sources = real_out / SOURCES_DIR  # what a `dataset nuscenes`/`kitti-raw` run prepared
-    for p in [*paths, calib]:
-        rp = None if p is None else Path(p).resolve()
-        if rp is not None and (rp == sources or sources in rp.parents):
-            continue
-        if rp is not None and (rp == real_out or real_out in rp.parents):
-            # files would be replaced by copies of themselves (and then hashed and deleted)
-            raise OutputError(f"input {p} is inside the dataset folder {out_dir}")
-    state = _dataset_state(out)
-    existing_ids: set[str] = set()
-    if state == "dataset":
-        table, _ = read_manifest(out / MANIFEST_NAME)
-        existing_ids = set(table.column("id").to_pylist())
-
-    settings = BuildSettings(
-        sparse_format=sparse_format,
-        sparse_name=sparse_name,
-        gt_name=gt_name,
-        link=bool(link),
-        source=str(source),
-        params=params,
-        sequence_from=sequence_from,
-        split=None if split_files or from_tree else fractions,
-        split_files=tuple(str(f) for f in split_files) if split_files else None,
-        seed=int(seed),
-    )
-    given = {"rgb": rgb, "sparse": sparse, "gt": gt, "confidence": confidence, "calib": calib}
-    tasks = [_task(out, k, ids[k], sequence[k], inputs, sparse_format, given) for k in keys]
-
-    def complete(t, _ids=existing_ids):
-        files = [p for r, p in t.outputs.items() if r != "staged"]
-        return all(p.is_file() for p in files) and (
-            t.outputs["staged"].is_file() or t.inputs.id in _ids
-        )
-
-    t_plan = time.perf_counter() - t_start
-    spec = RunSpec(
-        "dataset build", out, settings, noun="a dataset",
-        shared_outputs=(out / MANIFEST_NAME,),
-    )  # fmt: skip
-    summary = run_frames(
-        DatasetJob(str(out), settings), tasks, batch=batch, spec=spec, complete=complete,
-        desc="dataset",
-    )  # fmt: skip
-    stage_totals = {"t_plan": round(t_plan, 4)}
-    stage_totals.update(
-        {
-            s: round(summary.total(s), 4)
-            for s in ("t_read", "t_decode", "t_encode", "t_hash", "t_write", "t_stage")
-        }
-    )
-    info = {
-        "created_by": f"sparsetools {__version__}",
-        "sparse_format": sparse_format,
-        "split": {"method": "split-file", **split_report}
-        if split_files
-        else ({"method": "tree"} if from_tree else {"method": "sequence", "fractions": fractions,
-                                                    "seed": int(seed)}),
-    }  # fmt: skip
-    t0 = time.perf_counter()
-    final = _finalize(
-        out,
-        fractions=fractions,
+    settings = BuildSettings.with_splits(
+        split, split_files, sparse_format=sparse_format, sparse_name=sparse_name,
+        gt_name=gt_name, link=link, source=source, params=params, sequence_from=sequence_from,
         seed=seed,
-        assignment=assignment,
-        info=info,
-        frames_per_part=frames_per_part,
-        only=set(ids[k] for k in keys) if batch.overwrite else None,
+    )  # fmt: skip
+    found = find_build_inputs(
+        settings, rgb=rgb, sparse=sparse, gt=gt, confidence=confidence, calib=calib,
+        camera=camera,
+    )  # fmt: skip
+    job = DatasetJob.for_inputs(
+        settings, found, overwrite=batch.overwrite, frames_per_part=frames_per_part
     )
-    stage_totals["t_finalize"] = round(time.perf_counter() - t0, 4)
-    return summary.with_totals(
-        {
-            **final,
-            "unmatched": unmatched,
-            "linked": int(summary.total("linked")),
-            "stage_seconds": stage_totals,
-            "output": str(out),
-        }
-    )
+    return run_job(job, found.frames, out_dir, batch=batch, inputs=found.roots, desc="dataset")
 
 
-def _task(
-    out: Path, k: FrameKey, fid: str, seq: str, inputs: _Inputs, sparse_format: str, given: dict
-) -> FrameTask:
-    """The task of one frame: its typed input record, dataset files and input files."""
-    rgb_file = inputs.rgb[k]
-    desc = {"rgb": _rel_desc(rgb_file, given["rgb"])}
-    sparse_file = sparse_points = None
-    sources = [rgb_file]
-    if inputs.sparse_is_table:
-        sparse_points = inputs.sparse[k]
-        desc["sparse"] = inputs.sparse_path.name
-        sources.append(inputs.sparse_path)
-    else:
-        sparse_file = str(inputs.sparse[k])
-        desc["sparse"] = _rel_desc(inputs.sparse[k], given["sparse"])
-        sources.append(inputs.sparse[k])
-    extra = {}
-    for kind, found in inputs.extra.items():
-        extra[kind] = str(found[k])
-        desc[kind] = _rel_desc(found[k], given[kind])
-        sources.append(found[k])
-    cal = inputs.calib.get(k)
-    if cal is not None:
-        desc["calib"] = _rel_desc(Path(cal), given["calib"]) if given["calib"] else Path(cal).name
-        sources.append(Path(cal))
-    inp = DatasetFrameInput(
-        id=fid,
-        sequence=seq,
-        frame=k.frame,
-        rgb=str(rgb_file),
-        sparse=sparse_file,
-        sparse_points=sparse_points,
-        gt=extra.get("gt"),
-        confidence=extra.get("confidence"),
-        calib=cal,
-        timestamp=inputs.times.get(k),
-        pose=inputs.poses.get(k),
-        inputs_desc=tuple(sorted(desc.items())),
-    )
-    outputs = {"rgb": out / f"rgb/{fid}{rgb_file.suffix.lower()}"}
-    if sparse_format in ("png", "both"):
-        outputs["sparse"] = out / f"{SPARSE_DIR}/{fid}.png"
-    for kind in ("gt", "confidence"):
-        if kind in extra:
-            outputs[kind] = out / f"{kind}/{fid}{Path(extra[kind]).suffix.lower()}"
-    outputs["staged"] = out / STAGING / f"{fid}.rec"  # written last: marks the frame complete
-    return FrameTask(k, inp, outputs, tuple(sources))
-
-
-def _rel_desc(path: Path, folder) -> str:
-    folder = Path(folder)
-    try:
-        return Path(path).relative_to(folder).as_posix() if folder.is_dir() else folder.name
-    except ValueError:
-        return Path(path).name
-
-
-def _part_index(name: str) -> int | None:
-    m = _PART_RE.match(name)
-    return int(m.group(1)) if m else None
-
-
-def _frame_indices(rows: list[dict]) -> None:
-    """``frame_index``: each frame's rank in its sequence, frames in natural order (numbers
-    compared as numbers: ``2`` before ``10``)."""
-    by_seq: dict[str, list[dict]] = defaultdict(list)
-    for r in rows:
-        by_seq[r["sequence"]].append(r)
-    for seq_rows in by_seq.values():
-        seq_rows.sort(key=lambda r: _natural(r["frame"]))
-        for i, r in enumerate(seq_rows):
-            r["frame_index"] = i
-
-
-def _natural(text: str) -> tuple:
-    return tuple(int(p) if p.isdigit() else p for p in re.split(r"(\d+)", text))
-
-
-def _finalize(
-    out: Path, *, fractions, seed, assignment, info, frames_per_part, only: set[str] | None = None
-) -> dict:
-    """Merge staged frames into the manifest and parts (see the module docstring).
-
-    ``only``: keep only these sample ids (``--overwrite``: the dataset holds this run only).
-    """
-    import pyarrow as pa
-
-    staging = out / STAGING
-    staged_files = (
-        sorted(p for p in staging.rglob("*.rec") if not p.name.startswith(TMP_PREFIX))
-        if staging.is_dir()
-        else []
-    )
-    manifest_path = out / MANIFEST_NAME
-    old_rows: list[dict] = []
-    old_info: dict = {}
-    if manifest_path.is_file():
-        table, old_info = read_manifest(manifest_path)
-        old_rows = table.select(MANIFEST_SCHEMA.names).to_pylist()
-    dropped = [] if only is None else [r for r in old_rows if r["id"] not in only]
-    if not staged_files and not dropped:
-        return _counts(old_rows)
-
-    new_rows = []
-    points_of: dict[str, tuple] = {}
-    for p in staged_files:
-        row, points = _read_record(p)
-        new_rows.append({name: row.get(name) for name in MANIFEST_SCHEMA.names})
-        if points is not None:
-            points_of[row["id"]] = points
-    staged_ids = {r["id"] for r in new_rows}
-    gone = staged_ids | {r["id"] for r in dropped}
-    kept = [r for r in old_rows if r["id"] not in gone]
-
-    if assignment is not None:
-        unknown = [r["id"] for r in new_rows if r["id"] not in assignment]
-        if unknown:
-            log.warning(
-                "%d staged frame(s) are not in the split files and are left out: %s",
-                len(unknown),
-                ", ".join(unknown[:5]),
-            )
-        for r in new_rows:
-            r["split"] = assignment.get(r["id"])
-        new_rows = [r for r in new_rows if r["split"] is not None]
-    else:
-        pinned: dict[str, str] = {}
-        for r in sorted(kept, key=lambda r: r["id"]):
-            if r["split"] is not None:
-                pinned.setdefault(r["sequence"], r["split"])
-        seq_split = assign_splits(
-            {r["sequence"] for r in new_rows}, fractions, seed=seed, pinned=pinned
+# -- the dataset folder ------------------------------------------------------------------------------
+def _check_dataset_folder(out: Path) -> None:
+    """Refuse a folder that holds other things than a dataset (new, partial or complete)."""
+    if (out / MANIFEST_NAME).is_file() or (out / STAGING).is_dir():
+        return
+    allowed = ("rgb", SPARSE_DIR, "gt", "confidence", RECORD_DIR, SOURCES_DIR)
+    if out.exists() and any(p for p in out.iterdir() if p.name not in allowed):
+        raise OutputError(
+            f"{out} exists and is not a sparsetools dataset (no {MANIFEST_NAME}); "
+            "choose a new or empty folder"
         )
-        for r in new_rows:
-            r["split"] = seq_split[r["sequence"]]
-    keep_new = {r["id"] for r in new_rows}
-
-    sparse_dir = out / SPARSE_DIR
-    on_disk = sorted(sparse_dir.glob("part-*.parquet")) if sparse_dir.is_dir() else []
-    # Parts no manifest row refers to were written by a finalize that was interrupted before
-    # its manifest: drop them, so the resumed build numbers its parts as an uninterrupted one.
-    referenced_old = {r["sparse_parquet"] for r in old_rows if r["sparse_parquet"] is not None}
-    for p in on_disk:
-        if f"{SPARSE_DIR}/{p.name}" not in referenced_old:
-            p.unlink()
-    on_disk = [p for p in on_disk if p.exists()]
-    next_part = 1 + max((i for p in on_disk if (i := _part_index(p.name)) is not None), default=-1)
-    written = []
-
-    def new_part(table: pa.Table) -> str:
-        nonlocal next_part
-        rel = f"{SPARSE_DIR}/part-{next_part:05d}.parquet"
-        next_part += 1
-        write_sparse_part(out / rel, table)
-        written.append(rel)
-        return rel
-
-    # Old parts that lose rows (overwritten frames) are rewritten with the rows kept.
-    kept_by_part: dict[str, list[dict]] = defaultdict(list)
-    for r in kept:
-        if r["sparse_parquet"] is not None:
-            kept_by_part[r["sparse_parquet"]].append(r)
-    removed_parts = {
-        r["sparse_parquet"] for r in old_rows if r["id"] in gone and r["sparse_parquet"] is not None
-    }
-    for rel in sorted(removed_parts & set(kept_by_part)):
-        rows = sorted(kept_by_part[rel], key=lambda r: r["id"])
-        table = read_sparse_part(resolve_in_dataset(out, rel))
-        sub = table.take(pa.array([r["sparse_row"] for r in rows], type=pa.int64()))
-        if sub.column("id").to_pylist() != [r["id"] for r in rows]:
-            raise FormatError(f"{rel}: rows do not match the manifest; run 'dataset verify'")
-        new_rel = new_part(sub)
-        for i, r in enumerate(rows):
-            r["sparse_parquet"], r["sparse_row"] = new_rel, i
-
-    by_id = {r["id"]: r for r in new_rows}
-    with_points = sorted(fid for fid in points_of if fid in keep_new)
-    for start in range(0, len(with_points), frames_per_part):
-        ids = with_points[start : start + frames_per_part]
-        rel = new_part(
-            sparse_part_table(
-                ids,
-                [points_of[i] for i in ids],
-                [(by_id[i]["height"], by_id[i]["width"]) for i in ids],
-            )
-        )
-        for i, fid in enumerate(ids):
-            by_id[fid]["sparse_parquet"], by_id[fid]["sparse_row"] = rel, i
-
-    rows = sorted(kept + new_rows, key=lambda r: r["id"])
-    _frame_indices(rows)
-    merged_info = {**old_info, **info}
-    merged_info.pop("schema_version", None)
-    write_manifest(
-        manifest_path, pa.Table.from_pylist(rows, schema=MANIFEST_SCHEMA), info=merged_info
-    )
-
-    referenced = {r["sparse_parquet"] for r in rows if r["sparse_parquet"] is not None}
-    for p in sorted(sparse_dir.glob("part-*.parquet")) if sparse_dir.is_dir() else []:
-        if f"{SPARSE_DIR}/{p.name}" not in referenced:
-            p.unlink()
-    shutil.rmtree(staging, ignore_errors=True)
-    result = _counts(rows)
-    result["new_parts"] = len(written)
-    return result
 
 
-def _counts(rows: list[dict]) -> dict:
-    splits = Counter(r["split"] for r in rows)
-    return {
-        "samples": len(rows),
-        "sequences": len({r["sequence"] for r in rows}),
-        "splits": {k: splits[k] for k in sorted(splits, key=str)},
-    }
+def _check_inputs_outside(out: Path, tasks: list[FrameTask]) -> None:
+    """Refuse input files inside the dataset (they would be replaced by copies of themselves,
+    then hashed and deleted), except in ``DATASET/.sources/`` (what a one-command route
+    prepared)."""
+    real_out = out.resolve()
+    prepared = real_out / SOURCES_DIR
+    folders = {os.path.dirname(os.path.abspath(p)) for t in tasks for p in t.sources}
+    for folder in sorted(folders):
+        real = Path(folder).resolve()
+        if real == prepared or prepared in real.parents:
+            continue
+        if real == real_out or real_out in real.parents:
+            raise OutputError(f"input {folder} is inside the dataset folder {out}")

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import statistics
 from collections import Counter, defaultdict
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +16,8 @@ from ...errors import FormatError
 from ...io.dataset import (
     MANIFEST_NAME,
     SPARSE_DIR,
-    _brief,
+    ManifestRow,
+    brief_error,
     bytes_sha256,
     decode_confidence_bytes,
     decode_depth_bytes,
@@ -24,117 +27,291 @@ from ...io.dataset import (
     read_sparse_part,
     resolve_in_dataset,
 )
+from ...validate import check_int_range
 from .staging import STAGING
 
-__all__ = ["dataset_info", "verify_dataset"]
+__all__ = ["DatasetInfo", "SplitCounts", "Spread", "VerifyReport", "dataset_info", "verify_dataset"]
 
 
 # -- info ----------------------------------------------------------------------------------------
-def _describe(values: list[float]) -> dict:
-    if not values:
-        return {"min": None, "median": None, "mean": None, "max": None}
-    return {
-        "min": min(values),
-        "median": statistics.median(values),
-        "mean": statistics.fmean(values),
-        "max": max(values),
-    }
+@dataclass(frozen=True)
+class Spread:
+    """Minimum, median, mean and maximum of a per-sample value (None without samples)."""
+
+    min: float | None = None
+    median: float | None = None
+    mean: float | None = None
+    max: float | None = None
+
+    @classmethod
+    def of(cls, values: list[float]) -> Spread:
+        if not values:
+            return cls()
+        return cls(min(values), statistics.median(values), statistics.fmean(values), max(values))
 
 
-def dataset_info(path: str | os.PathLike) -> dict:
+@dataclass(frozen=True)
+class SplitCounts:
+    """One split of a dataset: its samples, sequences and samples with ground truth."""
+
+    samples: int
+    sequences: int
+    with_gt: int
+
+
+@dataclass(frozen=True)
+class DatasetInfo:
+    """What ``dataset info`` reports: counts, sizes, density, file sizes, schema version.
+
+    ``str(info)`` is the text report, :meth:`to_dict` the JSON one.
+
+    Attributes
+    ----------
+    dataset : str
+    schema_version : int
+    created_by : str, optional
+        The sparsetools that built the dataset.
+    samples, sequences : int
+    splits : dict of split -> SplitCounts
+    image_sizes, sources : dict of str -> int
+        Samples per ``WxH`` image size and per sparse-depth source, most common first.
+    with_gt, with_confidence, with_intrinsics : int
+        Samples that have them.
+    n_sparse : Spread
+        Sparse points per sample.
+    density_percent : Spread
+        Sparse points per 100 pixels.
+    bytes : dict of kind -> int
+        File sizes per kind (``rgb``, ``sparse_png``, ``sparse_parquet``, ``gt``,
+        ``confidence``, ``manifest``).
+    total_bytes : int
+    missing_files : int
+        Files the manifest names that are gone.
+    split_method : dict, optional
+        How the splits were assigned (the manifest's metadata).
+    """
+
+    dataset: str
+    schema_version: int | None
+    created_by: str | None
+    samples: int
+    sequences: int
+    splits: dict[str, SplitCounts]
+    image_sizes: dict[str, int]
+    sources: dict[str, int]
+    with_gt: int
+    with_confidence: int
+    with_intrinsics: int
+    n_sparse: Spread
+    density_percent: Spread
+    bytes: dict[str, int]
+    total_bytes: int
+    missing_files: int
+    split_method: dict | None
+
+    def to_dict(self) -> dict:
+        """The report as JSON values (``dataset info --json``)."""
+        return dataclasses.asdict(self)
+
+    def format(self) -> str:
+        """The report as aligned ``name  value`` lines (``dataset info``)."""
+        lines = [
+            ("dataset", self.dataset),
+            ("schema version", self.schema_version),
+            ("created by", self.created_by),
+            ("samples", f"{self.samples} in {self.sequences} sequence(s)"),
+        ]
+        for name, s in self.splits.items():
+            lines.append(
+                (
+                    f"  {name}",
+                    f"{s.samples} sample(s), {s.sequences} sequence(s), {s.with_gt} with gt",
+                )
+            )
+        lines += [
+            ("image sizes", ", ".join(f"{k} ({v})" for k, v in self.image_sizes.items())),
+            ("sources", ", ".join(f"{k} ({v})" for k, v in self.sources.items())),
+            (
+                "with gt / confidence / intrinsics",
+                f"{self.with_gt} / {self.with_confidence} / {self.with_intrinsics}",
+            ),
+        ]
+        n, dens = self.n_sparse, self.density_percent
+        if n.mean is not None:
+            lines.append(("sparse points", f"mean {n.mean:.1f}, min {n.min:.0f}, max {n.max:.0f}"))
+            lines.append(
+                (
+                    "density %",
+                    f"min {dens.min:.4g}, median {dens.median:.4g}, mean {dens.mean:.4g}, "
+                    f"max {dens.max:.4g}",
+                )
+            )
+        sizes = ", ".join(f"{k} {_human(v)}" for k, v in self.bytes.items())
+        lines.append(("size", f"{_human(self.total_bytes)} ({sizes})"))
+        if self.missing_files:
+            lines.append(("missing files", f"{self.missing_files} (run 'dataset verify')"))
+        width = max(len(k) for k, _ in lines)
+        return "\n".join(f"{k:<{width}}  {v}" for k, v in lines)
+
+    __str__ = format
+
+
+def _human(n: float) -> str:
+    """A byte count in B, KB, MB or GB (powers of 1024)."""
+    for unit in ("B", "KB", "MB", "GB"):
+        if n < 1024 or unit == "GB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return str(n)  # pragma: no cover
+
+
+_FILE_KINDS = (
+    ("rgb", "rgb_path"),
+    ("sparse_png", "sparse_path"),
+    ("gt", "gt_path"),
+    ("confidence", "confidence_path"),
+)
+
+
+def dataset_info(path: str | os.PathLike) -> DatasetInfo:
     """Counts per split, image sizes, density statistics, file sizes and the schema version."""
     root = Path(path)
     table, info = read_manifest(root / MANIFEST_NAME)
-    rows = table.to_pylist()
-    per_split: dict[str, dict] = {}
-    for name in sorted({r["split"] for r in rows}, key=str):
-        sub = [r for r in rows if r["split"] == name]
-        per_split[str(name)] = {
-            "samples": len(sub),
-            "sequences": len({r["sequence"] for r in sub}),
-            "with_gt": sum(r["gt_path"] is not None for r in sub),
-        }
-    sizes = Counter(f"{r['width']}x{r['height']}" for r in rows)
+    rows = ManifestRow.from_table(table)
+    per_split: dict[str, SplitCounts] = {}
+    for name in sorted({r.split for r in rows}, key=str):
+        sub = [r for r in rows if r.split == name]
+        per_split[str(name)] = SplitCounts(
+            samples=len(sub),
+            sequences=len({r.sequence for r in sub}),
+            with_gt=sum(r.gt_path is not None for r in sub),
+        )
+    sizes = Counter(f"{r.width}x{r.height}" for r in rows)
     bytes_by_kind: dict[str, int] = defaultdict(int)
     missing = 0
     for r in rows:
-        for kind, col in (
-            ("rgb", "rgb_path"),
-            ("sparse_png", "sparse_path"),
-            ("gt", "gt_path"),
-            ("confidence", "confidence_path"),
-        ):
-            if r[col] is None:
+        for kind, col in _FILE_KINDS:
+            rel = getattr(r, col)
+            if rel is None:
                 continue
             try:
-                bytes_by_kind[kind] += resolve_in_dataset(root, r[col]).stat().st_size
+                bytes_by_kind[kind] += resolve_in_dataset(root, rel).stat().st_size
             except OSError:
                 missing += 1
-    for rel in sorted({r["sparse_parquet"] for r in rows if r["sparse_parquet"] is not None}):
+    for rel in sorted({r.sparse_parquet for r in rows if r.sparse_parquet is not None}):
         try:
             bytes_by_kind["sparse_parquet"] += resolve_in_dataset(root, rel).stat().st_size
         except OSError:
             missing += 1
     bytes_by_kind["manifest"] = (root / MANIFEST_NAME).stat().st_size
-    density = [100.0 * r["density"] for r in rows]
-    return {
-        "dataset": str(root),
-        "schema_version": info.get("schema_version"),
-        "created_by": info.get("created_by"),
-        "samples": len(rows),
-        "sequences": len({r["sequence"] for r in rows}),
-        "splits": per_split,
-        "image_sizes": dict(sizes.most_common()),
-        "sources": dict(Counter(r["source"] for r in rows).most_common()),
-        "with_gt": sum(r["gt_path"] is not None for r in rows),
-        "with_confidence": sum(r["confidence_path"] is not None for r in rows),
-        "with_intrinsics": sum(r["fx"] is not None for r in rows),
-        "n_sparse": _describe([float(r["n_sparse"]) for r in rows]),
-        "density_percent": _describe(density),
-        "bytes": dict(bytes_by_kind),
-        "total_bytes": int(sum(bytes_by_kind.values())),
-        "missing_files": missing,
-        "split_method": info.get("split"),
-    }
+    return DatasetInfo(
+        dataset=str(root),
+        schema_version=info.get("schema_version"),
+        created_by=info.get("created_by"),
+        samples=len(rows),
+        sequences=len({r.sequence for r in rows}),
+        splits=per_split,
+        image_sizes=dict(sizes.most_common()),
+        sources=dict(Counter(r.source for r in rows).most_common()),
+        with_gt=sum(r.gt_path is not None for r in rows),
+        with_confidence=sum(r.confidence_path is not None for r in rows),
+        with_intrinsics=sum(r.fx is not None for r in rows),
+        n_sparse=Spread.of([float(r.n_sparse) for r in rows]),
+        density_percent=Spread.of([100.0 * r.density for r in rows]),
+        bytes=dict(bytes_by_kind),
+        total_bytes=int(sum(bytes_by_kind.values())),
+        missing_files=missing,
+        split_method=info.get("split"),
+    )
 
 
 # -- verify ----------------------------------------------------------------------------------------
-def _verify_row(root: Path, r: dict, check_hashes: bool) -> tuple[list[str], np.ndarray | None]:
-    problems = []
-    fid = r["id"]
-    shape = (r["height"], r["width"])
-    sparse_png = None
+@dataclass(frozen=True)
+class VerifyReport:
+    """What ``dataset verify`` found: problems (the dataset is not intact) and warnings.
 
-    def load(col: str) -> bytes | None:
+    ``str(report)`` is the text report, :meth:`to_dict` the JSON one.
+
+    Attributes
+    ----------
+    dataset : str
+    schema_version : int
+    samples : int
+    inputs_changed : int
+        Samples whose input files changed since the build (each also a problem).
+    problems : tuple of str
+        One line each; empty: the dataset is intact.
+    warnings : tuple of str
+        Sequences in several splits, unreferenced part files, an unfinished build, inputs
+        gone since the build.
+    """
+
+    dataset: str
+    schema_version: int
+    samples: int
+    inputs_changed: int
+    problems: tuple[str, ...]
+    warnings: tuple[str, ...]
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+    def to_dict(self) -> dict:
+        """The report as JSON values (``dataset verify --json``)."""
+        d = dataclasses.asdict(self)
+        d.update(problems=list(self.problems), warnings=list(self.warnings))
+        return d
+
+    def format(self) -> str:
+        """Warnings, then problems, one per line; or the line saying all is well."""
+        lines = [f"warning: {w}" for w in self.warnings]
+        lines += [f"problem: {p}" for p in self.problems]
+        if self.ok:
+            lines.append(f"{self.dataset}: {self.samples} sample(s) verified, no problem")
+        return "\n".join(lines)
+
+    __str__ = format
+
+
+def _verify_row(
+    root: Path, r: ManifestRow, check_hashes: bool
+) -> tuple[list[str], np.ndarray | None]:
+    problems = []
+    fid = r.id
+    shape = (r.height, r.width)
+
+    def load(rel: str, col: str) -> bytes | None:
         try:
-            p = resolve_in_dataset(root, r[col], what=col)
+            p = resolve_in_dataset(root, rel, what=col)
         except FormatError as exc:
             problems.append(f"{fid}: {exc}")
             return None
         try:
             return p.read_bytes()
         except FileNotFoundError:
-            problems.append(f"{fid}: {r[col]} is missing")
+            problems.append(f"{fid}: {rel} is missing")
         except OSError as exc:
-            problems.append(f"{fid}: {r[col]} cannot be read ({exc.strerror or exc})")
+            problems.append(f"{fid}: {rel} cannot be read ({exc.strerror or exc})")
         return None
 
-    def check(col: str, sha_col: str, decode) -> np.ndarray | None:
-        if r[col] is None:
+    def check(col: str, sha: str | None, decode) -> np.ndarray | None:
+        rel = getattr(r, col)
+        if rel is None:
             return None
-        data = load(col)
+        data = load(rel, col)
         if data is None:
             return None
-        if check_hashes and bytes_sha256(data) != r[sha_col]:
-            problems.append(f"{fid}: {r[col]} has changed (sha256 differs from the manifest)")
+        if check_hashes and bytes_sha256(data) != sha:
+            problems.append(f"{fid}: {rel} has changed (sha256 differs from the manifest)")
         try:
-            arr = decode(data, r[col])
+            arr = decode(data, rel)
         except FormatError as exc:
-            problems.append(f"{fid}: {r[col]} cannot be decoded ({_brief(exc)})")
+            problems.append(f"{fid}: {rel} cannot be decoded ({brief_error(exc)})")
             return None
         if arr.shape[:2] != shape:
             problems.append(
-                f"{fid}: {r[col]} is {arr.shape[1]}x{arr.shape[0]}, the manifest says "
+                f"{fid}: {rel} is {arr.shape[1]}x{arr.shape[0]}, the manifest says "
                 f"{shape[1]}x{shape[0]}"
             )
             return None
@@ -148,43 +325,40 @@ def _verify_row(root: Path, r: dict, check_hashes: bool) -> tuple[list[str], np.
             raise FormatError("not an 8-bit image")
         return img
 
-    check("rgb_path", "rgb_sha256", rgb_decode)
-    sparse_png = check(
-        "sparse_path",
-        "sparse_sha256",
-        lambda d, rel: decode_depth_bytes(d, Path(rel).suffix, source=rel),
-    )
-    if sparse_png is not None and r["sparse_parquet"] is None:
+    def depth_decode(data, rel):
+        return decode_depth_bytes(data, Path(rel).suffix, source=rel)
+
+    check("rgb_path", r.rgb_sha256, rgb_decode)
+    sparse_png = check("sparse_path", r.sparse_sha256, depth_decode)
+    if sparse_png is not None and r.sparse_parquet is None:
         n = int(np.count_nonzero(sparse_png))
-        if n != r["n_sparse"]:
+        if n != r.n_sparse:
             problems.append(
-                f"{fid}: {r['sparse_path']} holds {n} points, the manifest says {r['n_sparse']}"
+                f"{fid}: {r.sparse_path} holds {n} points, the manifest says {r.n_sparse}"
             )
-    gt = check(
-        "gt_path", "gt_sha256", lambda d, rel: decode_depth_bytes(d, Path(rel).suffix, source=rel)
-    )
-    if gt is not None and r["n_gt"] is not None and int(np.count_nonzero(gt)) != r["n_gt"]:
+    gt = check("gt_path", r.gt_sha256, depth_decode)
+    if gt is not None and r.n_gt is not None and int(np.count_nonzero(gt)) != r.n_gt:
         problems.append(
-            f"{fid}: {r['gt_path']} holds {np.count_nonzero(gt)} points, the manifest says {r['n_gt']}"
+            f"{fid}: {r.gt_path} holds {np.count_nonzero(gt)} points, the manifest says {r.n_gt}"
         )
     check(
         "confidence_path",
-        "confidence_sha256",
+        r.confidence_sha256,
         lambda d, rel: decode_confidence_bytes(d, Path(rel).suffix, source=rel),
     )
-    if r["sparse_path"] is None and r["sparse_parquet"] is None:
+    if r.sparse_path is None and r.sparse_parquet is None:
         problems.append(f"{fid}: no sparse depth (neither PNG nor Parquet)")
-    if r["width"] > 0 and r["height"] > 0:
-        expected = r["n_sparse"] / float(r["width"] * r["height"])
-        if not math.isclose(r["density"], expected, rel_tol=1e-9, abs_tol=1e-12):
-            problems.append(f"{fid}: density {r['density']} does not match n_sparse / pixels")
+    if r.width > 0 and r.height > 0:
+        expected = r.n_sparse / float(r.width * r.height)
+        if not math.isclose(r.density, expected, rel_tol=1e-9, abs_tol=1e-12):
+            problems.append(f"{fid}: density {r.density} does not match n_sparse / pixels")
     else:
-        problems.append(f"{fid}: bad image size {r['width']}x{r['height']}")
+        problems.append(f"{fid}: bad image size {r.width}x{r.height}")
     return problems, sparse_png
 
 
 def _verify_part(
-    root: Path, rel: str, rows: list[dict], pngs: dict, check_hashes: bool
+    root: Path, rel: str, rows: list[ManifestRow], pngs: dict, check_hashes: bool
 ) -> list[str]:
     problems = []
     try:
@@ -193,8 +367,8 @@ def _verify_part(
         return [f"{rel}: {exc}"]
     entries = list(part_rows(table))
     for r in rows:
-        fid = r["id"]
-        i = r["sparse_row"]
+        fid = r.id
+        i = r.sparse_row
         if i is None or not 0 <= i < len(entries):
             problems.append(f"{fid}: {rel} has no row {i}")
             continue
@@ -202,16 +376,14 @@ def _verify_part(
         if pid != fid:
             problems.append(f"{fid}: {rel} row {i} holds '{pid}'")
             continue
-        if (h, w) != (r["height"], r["width"]):
+        if (h, w) != (r.height, r.width):
             problems.append(
-                f"{fid}: {rel} row {i} is {w}x{h}, the manifest says {r['width']}x{r['height']}"
+                f"{fid}: {rel} row {i} is {w}x{h}, the manifest says {r.width}x{r.height}"
             )
             continue
-        if u.size != r["n_sparse"]:
-            problems.append(
-                f"{fid}: {rel} holds {u.size} points, the manifest says {r['n_sparse']}"
-            )
-        if check_hashes and points_sha256(u, v, d) != r["sparse_points_sha256"]:
+        if u.size != r.n_sparse:
+            problems.append(f"{fid}: {rel} holds {u.size} points, the manifest says {r.n_sparse}")
+        if check_hashes and points_sha256(u, v, d) != r.sparse_points_sha256:
             problems.append(f"{fid}: {rel} row {i} has changed (points sha256 differs)")
         if u.size and (int(u.max()) >= w or int(v.max()) >= h):
             problems.append(f"{fid}: {rel} row {i} has points outside the image")
@@ -229,11 +401,13 @@ def _verify_part(
             stored = png[v.astype(np.intp), u.astype(np.intp)].astype(np.float64)
             err = np.abs(stored - np.clip(d.astype(np.float64), 1 / 256, 65535 / 256))
             if not ok_mask or (err.size and float(err.max()) > 1 / 512 + 1e-6):
-                problems.append(f"{fid}: {r['sparse_path']} and {rel} disagree")
+                problems.append(f"{fid}: {r.sparse_path} and {rel} disagree")
     return problems
 
 
-def verify_dataset(path: str | os.PathLike, *, check_hashes: bool = True, workers: int = 1) -> dict:
+def verify_dataset(
+    path: str | os.PathLike, *, check_hashes: bool = True, threads: int = 1
+) -> VerifyReport:
     """Check a dataset: every file present, decodable, of the manifest's size, hash matching.
 
     Parameters
@@ -242,29 +416,29 @@ def verify_dataset(path: str | os.PathLike, *, check_hashes: bool = True, worker
         Dataset folder.
     check_hashes : bool
         Compare SHA-256 of every file (and of every frame's sparse points).
-    workers : int
+    threads : int
         Threads reading and decoding files (hashing and decoding release the GIL).
 
     Returns
     -------
-    dict
-        ``samples``, ``problems`` (list of one-line messages; empty = valid),
-        ``warnings`` (sequences in several splits, unreferenced part files).
-        A manifest that cannot be read at all raises :class:`FormatError`.
+    VerifyReport
+        Its ``problems`` empty when the dataset is intact. A manifest that cannot be read
+        at all raises :class:`FormatError`.
     """
     from concurrent.futures import ThreadPoolExecutor
 
+    threads = check_int_range(threads, "threads", low=1)
     root = Path(path)
     table, info = read_manifest(root / MANIFEST_NAME)
-    rows = table.to_pylist()
+    rows = ManifestRow.from_table(table)
     problems: list[str] = []
     warnings: list[str] = []
 
     def one(r):
         return _verify_row(root, r, check_hashes)
 
-    if workers > 1:
-        with ThreadPoolExecutor(max_workers=workers) as pool:
+    if threads > 1:
+        with ThreadPoolExecutor(max_workers=threads) as pool:
             results = list(pool.map(one, rows))
     else:
         results = [one(r) for r in rows]
@@ -272,16 +446,16 @@ def verify_dataset(path: str | os.PathLike, *, check_hashes: bool = True, worker
     for r, (probs, png) in zip(rows, results, strict=True):
         problems.extend(probs)
         if png is not None:
-            pngs[r["id"]] = png
-    by_part: dict[str, list[dict]] = defaultdict(list)
+            pngs[r.id] = png
+    by_part: dict[str, list[ManifestRow]] = defaultdict(list)
     for r in rows:
-        if r["sparse_parquet"] is not None:
-            by_part[r["sparse_parquet"]].append(r)
+        if r.sparse_parquet is not None:
+            by_part[r.sparse_parquet].append(r)
     for rel in sorted(by_part):
         problems.extend(_verify_part(root, rel, by_part[rel], pngs, check_hashes))
     seq_splits: dict[str, set] = defaultdict(set)
     for r in rows:
-        seq_splits[r["sequence"]].add(r["split"])
+        seq_splits[r.sequence].add(r.split)
     for seq in sorted(seq_splits):
         if len(seq_splits[seq]) > 1:
             warnings.append(
@@ -296,7 +470,7 @@ def verify_dataset(path: str | os.PathLike, *, check_hashes: bool = True, worker
         warnings.append(
             f"{STAGING}/ holds frames of an unfinished build (rerun the build to add them)"
         )
-    changed, moved = _changed_inputs(root, {r["id"] for r in rows})
+    changed, moved = _changed_inputs(root, {r.id for r in rows})
     for sid, path in changed:
         problems.append(
             f"{sid}: input {path} changed since the build (rerun 'dataset build' to update)"
@@ -306,14 +480,14 @@ def verify_dataset(path: str | os.PathLike, *, check_hashes: bool = True, worker
             f"{len(moved)} input file(s) of the build are gone (moved or deleted), e.g. "
             f"{moved[0][1]} of {moved[0][0]}: the dataset itself is unaffected"
         )
-    return {
-        "dataset": str(root),
-        "schema_version": info["schema_version"],
-        "samples": len(rows),
-        "inputs_changed": len(changed),
-        "problems": problems,
-        "warnings": warnings,
-    }
+    return VerifyReport(
+        dataset=str(root),
+        schema_version=info["schema_version"],
+        samples=len(rows),
+        inputs_changed=len(changed),
+        problems=tuple(problems),
+        warnings=tuple(warnings),
+    )
 
 
 def _changed_inputs(root: Path, ids: set[str]) -> tuple[list, list]:

@@ -1,6 +1,6 @@
 """Dataset splits: fractions, split files (KITTI Eigen lines), sequence names, assignment.
 
-Splits are assigned to whole sequences. With fractions (``--split``): sequences are ordered
+Splits are assigned to whole sequences. With fractions (``--splits``): sequences are ordered
 by SHA-256 of ``"<seed>/<sequence>"`` and the first ones filled into the splits in order
 until each split holds its quota (largest-remainder rounding of ``fraction * sequences``;
 every split with a non-zero fraction gets at least one sequence when there are enough).

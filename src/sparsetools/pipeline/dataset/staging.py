@@ -1,9 +1,10 @@
-"""The per-frame job of ``dataset build`` and its staging record.
+"""The per-frame work of ``dataset build`` and its staging record.
 
-Each frame is copied (or linked) into the dataset, decoded to check sizes, hashed, and its
-manifest row staged as ``DATASET/.staging/<id>.rec`` (written last, atomically: a frame
-whose record exists is complete). :func:`sparsetools.pipeline.dataset.build` merges the
-records into the manifest.
+Each frame is copied (or reflinked) into the dataset, decoded to check sizes, hashed, and its
+manifest row (:class:`~sparsetools.io.dataset.ManifestRow`) staged as
+``DATASET/.staging/<id>.rec`` (written last, atomically: a frame whose record exists is
+complete). :class:`sparsetools.pipeline.dataset.build.DatasetJob` runs
+:func:`stage_frame` per frame, then :mod:`.merge` merges the records into the manifest.
 """
 
 from __future__ import annotations
@@ -11,28 +12,42 @@ from __future__ import annotations
 import json
 import os
 import time
-from collections import defaultdict
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ...errors import FormatError
 from ...io.atomic import atomic_path, atomic_write_bytes
 from ...io.dataset import (
-    MANIFEST_SCHEMA,
     MAX_SIDE,
     SPARSE_DIR,
-    _brief,
+    ManifestRow,
+    brief_error,
     bytes_sha256,
     decode_confidence_bytes,
     decode_depth_bytes,
     depth_to_points,
     points_sha256,
 )
-from ..core import FrameTask
+from ..core import FrameStats
 
-__all__ = ["STAGING", "DatasetFrameInput", "DatasetJob", "read_record", "write_record"]
+if TYPE_CHECKING:
+    from .build import BuildSettings
+
+__all__ = [
+    "STAGES",
+    "STAGING",
+    "DatasetFrameInput",
+    "DatasetFrameStats",
+    "read_record",
+    "read_staged",
+    "sample_files",
+    "stage_frame",
+    "write_record",
+]
 
 STAGING = ".staging"
 
@@ -115,8 +130,11 @@ def _clean_points(u, v, d, h: int, w: int, source: str) -> np.ndarray:
 _RECORD_MAGIC = b"SPTREC1\n"
 
 
-def write_record(path: Path, row: dict, points) -> None:
+def write_record(path: Path, row: Mapping, points) -> None:
     """Staging record: magic, JSON header (manifest row, point count), then the raw points.
+
+    ``row`` is a manifest row as JSON values (:meth:`ManifestRow.to_dict`); ``points`` the
+    frame's (u, v, depth) arrays, or None.
 
     Layout: ``SPTREC1\n``, uint64 LE header length, UTF-8 JSON, then u (uint16 LE),
     v (uint16 LE), depth (float32 LE). Far cheaper than a one-row Parquet file or an .npz
@@ -136,6 +154,7 @@ def write_record(path: Path, row: dict, points) -> None:
 
 
 def read_record(path: Path) -> tuple[dict, tuple | None]:
+    """The row (as stored: a dict) and the points (or None) of a staging record."""
     try:
         data = path.read_bytes()
         if not data.startswith(_RECORD_MAGIC):
@@ -159,10 +178,21 @@ def read_record(path: Path) -> tuple[dict, tuple | None]:
         if not isinstance(row, dict):
             raise ValueError("the record's row is not an object")
     except (OSError, ValueError, KeyError, TypeError, IndexError, OverflowError) as exc:
-        raise FormatError(
-            f"{path}: corrupt staging record ({_brief(exc)}); delete it and rerun"
-        ) from exc
+        raise _corrupt(path, exc) from exc
     return row, points
+
+
+def read_staged(path: Path) -> tuple[ManifestRow, tuple | None]:
+    """The manifest row and the points (or None) of a staging record."""
+    row, points = read_record(path)
+    try:
+        return ManifestRow.from_dict(row), points
+    except (TypeError, ValueError) as exc:
+        raise _corrupt(path, exc) from exc
+
+
+def _corrupt(path: Path, exc: BaseException) -> FormatError:
+    return FormatError(f"{path}: corrupt staging record ({brief_error(exc)}); delete it and rerun")
 
 
 @dataclass(frozen=True)
@@ -175,11 +205,15 @@ class DatasetFrameInput:
         Sample id (``<sequence>/<frame>`` of the input tree), its sequence and frame name.
     rgb : str
     sparse : str, optional
-        Sparse depth map file (PNG / .npy), or ``sparse_points`` (u, v, depth, h, w).
+        Sparse depth map file (PNG / .npy), or ``sparse_points`` (u, v, depth, h, w) read
+        from the points table ``sparse_table``.
     gt, confidence, calib : str, optional
     timestamp : float, optional
     pose : tuple of 16 floats, optional
         Row-major ``T_world_cam``.
+    split : str, optional
+        The split the inputs give the frame (a split file listing it, or the tree it is in);
+        None: assigned by sequence when the frames are merged.
     inputs_desc : tuple of (kind, relative path)
         Where each input came from, for ``generation_params``.
     """
@@ -190,33 +224,62 @@ class DatasetFrameInput:
     rgb: str
     sparse: str | None = None
     sparse_points: tuple | None = None
+    sparse_table: str | None = None
     gt: str | None = None
     confidence: str | None = None
     calib: str | None = None
     timestamp: float | None = None
     pose: tuple[float, ...] | None = None
+    split: str | None = None
     inputs_desc: tuple[tuple[str, str], ...] = ()
+
+    @property
+    def sources(self) -> tuple[Path, ...]:
+        """The input files whose identity decides whether the frame is up to date."""
+        files = (self.rgb, self.sparse_table or self.sparse, self.gt, self.confidence, self.calib)
+        return tuple(Path(f) for f in files if f is not None)
 
 
 @dataclass(frozen=True)
-class DatasetJob:
-    """The per-frame job of ``dataset build`` (picklable): copy/convert one frame into the
-    dataset and stage its manifest row.
+class DatasetFrameStats(FrameStats):
+    """What staging one frame did: its sparse points, files linked (reflinked) instead of
+    copied, and the seconds spent per stage (timings: never recorded)."""
 
-    Returns counts and the seconds spent per stage (``t_read``, ``t_decode``, ``t_encode``,
-    ``t_hash``, ``t_write``, ``t_stage``).
-    """
+    n_sparse: int
+    linked: int = 0
+    t_read: float = 0.0
+    t_decode: float = 0.0
+    t_encode: float = 0.0
+    t_hash: float = 0.0
+    t_write: float = 0.0
+    t_stage: float = 0.0
 
-    root: str
-    settings: object  # BuildSettings (sparse_format, link, source, params)
 
-    def __call__(self, task: FrameTask[DatasetFrameInput]) -> dict:
-        return _build_frame(Path(self.root), self.settings, task.inputs)
+#: The per-frame stages of :class:`DatasetFrameStats`, in the order a frame runs them.
+STAGES = ("t_read", "t_decode", "t_encode", "t_hash", "t_write", "t_stage")
 
 
-def _build_frame(root: Path, settings, x: DatasetFrameInput) -> dict:
+def sample_files(x: DatasetFrameInput, sparse_format: str) -> dict[str, str]:
+    """Dataset-relative path of every file a frame writes, by role; the staging record
+    (``staged``, written last: it marks the frame complete) at the end."""
+    files = {"rgb": f"rgb/{x.id}{Path(x.rgb).suffix.lower()}"}
+    if sparse_format in ("png", "both"):
+        files["sparse"] = f"{SPARSE_DIR}/{x.id}.png"
+    for kind in ("gt", "confidence"):
+        src = getattr(x, kind)
+        if src is not None:
+            files[kind] = f"{kind}/{x.id}{Path(src).suffix.lower()}"
+    files["staged"] = f"{STAGING}/{x.id}.rec"
+    return files
+
+
+def stage_frame(
+    x: DatasetFrameInput, outputs: Mapping[str, Path], settings: BuildSettings
+) -> DatasetFrameStats:
+    """Copy (or reflink) one frame's files to ``outputs`` (from :func:`sample_files`) after
+    decoding every input to check it, and stage its manifest row and points."""
     fid = x.id
-    t = defaultdict(float)
+    t = dict.fromkeys(STAGES, 0.0)
     clock = time.perf_counter
 
     def timed(stage, fn, *args, **kwargs):
@@ -225,21 +288,16 @@ def _build_frame(root: Path, settings, x: DatasetFrameInput) -> dict:
         t[stage] += clock() - t0
         return out
 
-    linked = 0
-    row: dict = {f.name: None for f in MANIFEST_SCHEMA}
-    row.update(id=fid, sequence=x.sequence, frame=x.frame, source=settings.source)
-    row.update(timestamp=x.timestamp, T_world_cam=None if x.pose is None else list(x.pose))
+    rel = sample_files(x, settings.sparse_format)
     desc = dict(x.inputs_desc)
 
     # RGB: stored byte for byte with its own suffix.
     data = timed("t_read", _read_bytes, x.rgb, "image")
     w, h = timed("t_decode", _decode_rgb_size, data, x.rgb)
-    row.update(width=w, height=h)
-    row["rgb_sha256"] = timed("t_hash", bytes_sha256, data)
-    row["rgb_path"] = f"rgb/{fid}{Path(x.rgb).suffix.lower()}"
+    rgb_sha256 = timed("t_hash", bytes_sha256, data)
     # Files are written only once every input of the frame has been decoded and checked, so
     # a bad frame leaves nothing behind in the dataset.
-    writes = [(data, x.rgb, root / row["rgb_path"])]
+    writes = [(data, x.rgb, outputs["rgb"])]
 
     # Sparse depth: the float32 map as decoded, then PNG and/or points.
     fmt = settings.sparse_format
@@ -262,8 +320,8 @@ def _build_frame(root: Path, settings, x: DatasetFrameInput) -> dict:
             f"{src}: sparse depth is {depth.shape[1]}x{depth.shape[0]}, the image {x.rgb} is {w}x{h}"
         )
     n_sparse = int(np.count_nonzero(depth))
-    row.update(n_sparse=n_sparse, density=n_sparse / float(w * h))
-    if fmt in ("png", "both"):
+    sparse_sha256 = None
+    if "sparse" in rel:
         if sparse_png is None:
             from ...io.image import encode_depth_png
 
@@ -272,20 +330,22 @@ def _build_frame(root: Path, settings, x: DatasetFrameInput) -> dict:
             png_src = None
         else:
             png_src = src
-        row["sparse_path"] = f"{SPARSE_DIR}/{fid}.png"
-        row["sparse_sha256"] = timed("t_hash", bytes_sha256, sparse_png)
-        writes.append((sparse_png, png_src, root / row["sparse_path"]))
-    points = None
+        sparse_sha256 = timed("t_hash", bytes_sha256, sparse_png)
+        writes.append((sparse_png, png_src, outputs["sparse"]))
+    points = points_sha = None
     if fmt in ("parquet", "both"):
         if max(w, h) > MAX_SIDE:
             raise FormatError(f"frame {fid}: {w}x{h} is too large for uint16 pixel coordinates")
         points = timed("t_encode", depth_to_points, depth)
-        row["sparse_points_sha256"] = timed("t_hash", points_sha256, *points)
+        points_sha = timed("t_hash", points_sha256, *points)
 
     # Ground truth and confidence: stored byte for byte (PNG or .npy), decoded to check.
+    stored: dict[str, tuple[str | None, str | None]] = {}
+    n_gt = None
     for kind, decode in (("gt", decode_depth_bytes), ("confidence", decode_confidence_bytes)):
         src_k = getattr(x, kind)
         if src_k is None:
+            stored[kind] = (None, None)
             continue
         kdata = timed("t_read", _read_bytes, src_k, kind)
         arr = timed("t_decode", decode, kdata, Path(src_k).suffix, source=src_k)
@@ -294,12 +354,11 @@ def _build_frame(root: Path, settings, x: DatasetFrameInput) -> dict:
                 f"{src_k}: {kind} is {arr.shape[1]}x{arr.shape[0]}, the image {x.rgb} is {w}x{h}"
             )
         if kind == "gt":
-            row["n_gt"] = int(np.count_nonzero(arr))
-        rel = f"{kind}/{fid}{Path(src_k).suffix.lower()}"
-        row[f"{kind}_path"] = rel
-        row[f"{kind}_sha256"] = timed("t_hash", bytes_sha256, kdata)
-        writes.append((kdata, src_k, root / rel))
+            n_gt = int(np.count_nonzero(arr))
+        stored[kind] = (rel[kind], timed("t_hash", bytes_sha256, kdata))
+        writes.append((kdata, src_k, outputs[kind]))
 
+    fx = fy = cx = cy = None
     if x.calib is not None:
         from ...errors import CalibrationError
         from ...io.calib import load_calibration
@@ -310,15 +369,46 @@ def _build_frame(root: Path, settings, x: DatasetFrameInput) -> dict:
                 f"{x.calib}: calibration is for {calib.width}x{calib.height}, "
                 f"the image {x.rgb} is {w}x{h}"
             )
-        row.update(fx=calib.fx, fy=calib.fy, cx=calib.cx, cy=calib.cy)
+        fx, fy, cx, cy = calib.fx, calib.fy, calib.cx, calib.cy
         params["calib"] = desc.get("calib")
     if settings.params:
         params["params"] = settings.params
-    row["generation_params"] = json.dumps(params, sort_keys=True)
 
+    row = ManifestRow(
+        id=fid,
+        sequence=x.sequence,
+        frame=x.frame,
+        split=None,  # assigned when the frames are merged
+        width=w,
+        height=h,
+        fx=fx,
+        fy=fy,
+        cx=cx,
+        cy=cy,
+        rgb_path=rel["rgb"],
+        sparse_path=rel.get("sparse"),
+        sparse_parquet=None,  # the part is written when the frames are merged
+        sparse_row=None,
+        gt_path=stored["gt"][0],
+        confidence_path=stored["confidence"][0],
+        n_sparse=n_sparse,
+        density=n_sparse / float(w * h),
+        n_gt=n_gt,
+        source=settings.source,
+        rgb_sha256=rgb_sha256,
+        sparse_sha256=sparse_sha256,
+        sparse_points_sha256=points_sha,
+        gt_sha256=stored["gt"][1],
+        confidence_sha256=stored["confidence"][1],
+        generation_params=json.dumps(params, sort_keys=True),
+        frame_index=None,  # the rank in the sequence, known when the frames are merged
+        timestamp=x.timestamp,
+        T_world_cam=x.pose,
+    )
+    linked = 0
     for wdata, wsrc, wdst in writes:
         linked += timed("t_write", _store, wdata, wsrc, wdst, settings.link)
     t0 = clock()
-    write_record(root / STAGING / f"{fid}.rec", row, points)
+    write_record(outputs["staged"], row.to_dict(), points)
     t["t_stage"] += clock() - t0
-    return {"n_sparse": n_sparse, "linked": linked, **t}
+    return DatasetFrameStats(n_sparse=n_sparse, linked=linked, **t)
