@@ -1,11 +1,11 @@
-"""The structure of DESIGN.md, enforced: layers, module sizes, one declaration per option."""
+"""The structure of DESIGN.md, enforced: layers, module sizes, no file I/O in ops/ (one
+declaration per option: tests/test_vocabulary.py)."""
 
 from __future__ import annotations
 
 import re
 import subprocess
 import sys
-from collections import defaultdict
 from pathlib import Path
 
 import pytest
@@ -14,25 +14,6 @@ ROOT = Path(__file__).resolve().parent.parent
 SRC = ROOT / "src" / "sparsetools"
 #: A module holds one concern; past this many lines it holds several (DESIGN.md).
 MAX_LINES = 700
-#: Options spelt alike in several commands that mean different things there, so they are not
-#: one shared declaration: --window (jbf: metres; underwater: frames), --camera (project: KITTI
-#: index or nuScenes channel; lowlight: noise profile), --split (dataset build: fractions;
-#: train/eval: a split's name), --reference (equalize: a frame; stats: reference maps),
-#: --format (each command's own file formats), --crop (project: TOP,LEFT,H,W; train: WxH),
-#: --workers (train/eval/verify: loader or reader threads, not frame processes), --sensor
-#: (project: a nuScenes channel; defocus: a camera preset).
-DISTINCT_MEANINGS = {
-    "--window",
-    "--camera",
-    "--split",
-    "--reference",
-    "--format",
-    "--crop",
-    "--workers",
-    "--sensor",
-    "--confidence",  # jbf-expand: a flag (write maps); dataset build: a folder of maps
-    "--method",  # jbf-expand: jbf | height-extend; densify: ip-basic | nearest | linear
-}
 
 
 def test_import_layers_hold():
@@ -68,21 +49,6 @@ def test_no_module_is_over_the_size_limit():
     }
     big = {k: v for k, v in sizes.items() if v > MAX_LINES}
     assert not big, f"modules over {MAX_LINES} lines (split them by concern): {big}"
-
-
-_OPTION = re.compile(r"""click\.option\(\s*(?:"-\w",\s*)?"(--[a-z0-9-]+)""")
-
-
-def test_no_option_is_declared_twice_in_cli():
-    """An option two commands share is declared once, in cli/options.py."""
-    where: dict[str, set[str]] = defaultdict(set)
-    for p in (SRC / "cli").glob("*.py"):
-        if p.name == "options.py":
-            continue
-        for name in _OPTION.findall(p.read_text(encoding="utf-8")):
-            where[name].add(p.name)
-    twice = {k: sorted(v) for k, v in where.items() if len(v) > 1 and k not in DISTINCT_MEANINGS}
-    assert not twice, f"options declared in several cli modules (move to options.py): {twice}"
 
 
 @pytest.mark.parametrize("layer", ["ops"])

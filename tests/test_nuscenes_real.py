@@ -100,7 +100,7 @@ def _build(root, out, *extra):
     from sparsetools.cli.main import cli
 
     r = CliRunner().invoke(cli, ["-q", "dataset", "nuscenes", str(root), "-o", str(out),
-                                 "--sweeps", "1", "--resize", "0.5", "--crop", "100,0,350,800",
+                                 "--sweeps", "1", "--resize", "0.5", "--crop", "800x350+0+100",
                                  "--json", *extra])  # fmt: skip
     assert r.exit_code == 0, r.output
     return json.loads(r.stdout)

@@ -106,7 +106,7 @@ def test_dataset_build_from_a_depth_completion_tree_keeps_every_frame(raw_root, 
     ds = tmp_path / "ds"
     args = ["dataset", "build", "-o", ds, "--rgb", raw_root / DATE,
             "--sparse", dc / "data_depth_velodyne", "--gt", dc / "data_depth_annotated",
-            "--split", "tree"]  # fmt: skip
+            "--splits", "tree"]  # fmt: skip
     s = summary(*args)
     # every frame with ground truth is kept; the one without is reported, not silently lost
     assert s["samples"] == 2 * N - 1 and s["processed"] == 2 * N - 1

@@ -8,6 +8,7 @@ Each test reads the code or the command tree and fails on the first counter-exam
 from __future__ import annotations
 
 import ast
+import inspect
 import re
 from pathlib import Path
 
@@ -79,12 +80,10 @@ def test_every_batch_command_body_calls_run_job():
     for name, cmd in COMMANDS:
         if not any(p.name == "on_error" for p in cmd.params) or name in routes:
             continue
-        source = Path(cmd.callback.__code__.co_filename).read_text(encoding="utf-8")
-        func = next(
-            n for n in ast.walk(ast.parse(source))
-            if isinstance(n, ast.FunctionDef) and n.lineno <= cmd.callback.__code__.co_firstlineno
-            <= n.end_lineno
-        )  # fmt: skip
+        fn = inspect.unwrap(cmd.callback)
+        source = Path(fn.__code__.co_filename).read_text(encoding="utf-8")
+        func = next(n for n in ast.walk(ast.parse(source))
+                    if isinstance(n, ast.FunctionDef) and n.name == fn.__name__)  # fmt: skip
         if not _calls(func, "run_job"):
             missing.append(name)
     assert not missing, f"batch commands that do not call run_job: {missing}"
@@ -116,7 +115,7 @@ def _hand_written_rules(folder: Path) -> list[str]:
     for p in folder.rglob("*.py"):
         text = p.read_text(encoding="utf-8")
         for m in _HAND_RULE.finditer(text):
-            found.append(f"{p.relative_to(ROOT)}:{text.count(chr(10), 0, m.start()) + 1}")
+            found.append(f"{p}:{text.count(chr(10), 0, m.start()) + 1}")
     return found
 
 

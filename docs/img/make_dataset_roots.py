@@ -57,7 +57,7 @@ def main() -> None:
         t = Path(tmp)
         build_tree(REAL, t / "nuscenes")
         sh("dataset", "nuscenes", t / "nuscenes", "-o", t / "nus", "--sweeps", "1",
-           "--resize", "0.5", "--crop", "100,0,350,800")  # fmt: skip
+           "--resize", "0.5", "--crop", "800x350+0+100")  # fmt: skip
         seq = REAL / "kitti-raw-sequence-2011_09_26"
         date = t / "raw" / "2011_09_26"
         date.mkdir(parents=True)

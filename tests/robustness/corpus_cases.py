@@ -1006,9 +1006,9 @@ def _(tmp):
     return Setup(_build(tmp, "--split-file", s))
 
 
-@case("dataset-build/split-fractions-bad", expect="usage", match="must be numbers")
+@case("dataset-build/split-fractions-bad", expect="usage", match="split fractions as numbers")
 def _(tmp):
-    return Setup(_build(tmp, "--split", "0.5,abc"))
+    return Setup(_build(tmp, "--splits", "0.5,abc"))
 
 
 @case("dataset-build/rgb-and-sparse-do-not-match", match="no frame has all its inputs")

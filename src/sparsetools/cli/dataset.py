@@ -10,6 +10,7 @@ import click
 from .options import (
     batch_options,
     calib_option,
+    camera_option,
     checked,
     crop_option,
     deprecated,
@@ -21,7 +22,10 @@ from .options import (
     quiet_debug_options,
     resize_option,
     seed_option,
+    sensor_option,
+    split_option,
     sweeps_option,
+    threads_option,
 )
 
 
@@ -89,7 +93,7 @@ def _params_callback(ctx, param, value):
     except json.JSONDecodeError as exc:
         raise click.BadParameter(f"not valid JSON ({exc})") from None
     if not isinstance(obj, dict):
-        raise click.BadParameter("generation parameters must be a JSON object")
+        raise click.BadParameter("expected the generation parameters as a JSON object")
     return obj
 
 
@@ -106,6 +110,14 @@ def dataset():
       sparsetools dataset verify out/ds
     See docs/dataset.md for the on-disk format.
     """
+
+
+def _split_file_option(*, help: str):
+    """``--split-file [NAME=]FILE``, repeatable: the frames of one split by list."""
+    return click.option(
+        "--split-file", "split_files", multiple=True, callback=_split_file_callback,
+        metavar="[NAME=]FILE", help=help,
+    )  # fmt: skip
 
 
 @dataset.command("build")
@@ -144,14 +156,9 @@ def dataset():
     "(group 'sequence' or group 1).",
 )
 @splits_option("dataset build", tree=True)
-@click.option(
-    "--split-file",
-    "split_files",
-    multiple=True,
-    callback=_split_file_callback,
-    metavar="[NAME=]FILE",
+@_split_file_option(
     help="Split list (KITTI Eigen form or one id per line); repeat per split. The split "
-    "name comes from NAME= or the file name (train/val/test).",
+    "name comes from NAME= or the file name (train/val/test)."
 )
 @seed_option(help="Seed of the split assignment.")
 @click.option(
@@ -229,7 +236,7 @@ def build(
     found = find_build_inputs(
         settings, rgb=rgb, sparse=sparse, gt=gt, confidence=confidence, calib=calib
     )
-    job = DatasetJob.for_inputs(settings, found, overwrite=batch.overwrite)
+    job = DatasetJob.for_inputs(settings, found)
     summary = run_job(job, found.frames, out_dir, batch=batch, inputs=found.roots, desc="dataset")
     _summary(summary, as_json, out_dir)
 
@@ -263,10 +270,8 @@ def _summary(summary, as_json, out_dir) -> None:
 @click.argument("root", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @output_dir_option(help="Dataset folder (stages in DATASET/.sources/).")
 @nuscenes_version_option
-@click.option("--camera", default="CAM_FRONT", show_default=True, help="Camera channel.")
-@click.option(
-    "--sensor", default="RADAR_FRONT", show_default=True, help="Sparse input: RADAR_* or LIDAR_TOP."
-)
+@camera_option(default="CAM_FRONT", help="Camera channel.")
+@sensor_option(help="Sparse input: RADAR_* or LIDAR_TOP.")
 @sweeps_option(default=5, help="Sweeps of --sensor merged per sample.")
 @resize_option
 @crop_option(help="Then crop to W x H pixels at (LEFT, TOP), e.g. 800x350+0+100.")
@@ -321,10 +326,7 @@ def nuscenes(root, out_dir, nuscenes_version, camera, sensor, sweeps, resize, cr
     help="Beams of the input (the full scan is the ground truth); 64: the full scan.",
 )  # fmt: skip
 @splits_option("dataset kitti-raw")
-@click.option(
-    "--split-file", "split_files", multiple=True, callback=_split_file_callback,
-    metavar="[NAME=]FILE", help="Eigen / Eigen-Zhou split lists (repeat per split).",
-)  # fmt: skip
+@_split_file_option(help="Eigen / Eigen-Zhou split lists (repeat per split).")
 @seed_option(help="Seed of the split assignment.")
 @batch_options
 def kitti_raw(root, out_dir, beams, splits, split_files, seed, batch, as_json):
@@ -415,7 +417,7 @@ def kitti_dc(root, out_dir, raw, sparse_name, gt_name, selection, batch, as_json
     "--split-from", type=click.Path(exists=True, file_okay=False, path_type=Path),
     help="A depth-completion tree whose train/val folders give each drive's split.",
 )  # fmt: skip
-@click.option("--split", "default_split", default=None, help="Split of drives --split-from lacks.")
+@split_option("default_split", help="Split of drives --split-from lacks.")
 @batch_options
 def export(maps, out_dir, layout, name, split_from, default_split, batch, as_json):
     """Write depth maps of KITTI drives in the official depth-completion layout.
@@ -460,13 +462,7 @@ def info(dataset_dir, as_json):
 @dataset.command("verify")
 @click.argument("dataset_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.option("--no-hash", is_flag=True, help="Skip the SHA-256 comparison (faster).")
-@click.option(
-    "--threads",
-    type=click.IntRange(min=1),
-    default=1,
-    show_default=True,
-    help="Threads reading and decoding files.",
-)
+@threads_option(help="Threads reading and decoding files.")
 @deprecated("--workers", "--threads", command="dataset verify", dest="threads", metavar="N")
 @json_option(help="Print the report as JSON.")
 @quiet_debug_options

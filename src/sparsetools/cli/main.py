@@ -15,6 +15,7 @@ import click
 
 from .._version import __version__
 from ..errors import FrameError, UsageError
+from .options import quiet_debug_options
 
 # command name -> "module:function" under sparsetools.cli
 COMMANDS = {
@@ -89,10 +90,9 @@ class LazyGroup(click.Group):
 @click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, "--version", prog_name="sparsetools")
 @click.option("-v", "--verbose", count=True, help="More log output on stderr (-vv for debug).")
-@click.option("-q", "--quiet", is_flag=True, help="Only errors on stderr; no progress bars.")
-@click.option("--debug", is_flag=True, help="Show full tracebacks instead of one-line errors.")
+@quiet_debug_options
 @click.pass_context
-def cli(ctx, verbose, quiet, debug):
+def cli(ctx, verbose):
     """Turn camera + sparse depth sensor data into depth-estimation datasets.
 
     \b
@@ -102,15 +102,16 @@ def cli(ctx, verbose, quiet, debug):
       sparsetools beams out/scene/velodyne --n 4 -o out/beams4
     Every command has --help with a worked example.
     """
+    ctx.ensure_object(dict)
+    quiet = ctx.obj.get("quiet", False)  # set by -q (before or after the subcommand)
     level = (
         logging.ERROR if quiet else (logging.WARNING, logging.INFO, logging.DEBUG)[min(verbose, 2)]
     )
     logging.basicConfig(
         level=level, format="%(levelname)s: %(message)s", stream=sys.stderr, force=True
     )
-    ctx.ensure_object(dict)
-    ctx.obj["quiet"] = quiet or ctx.obj.get("quiet", False)
-    ctx.obj["debug"] = debug or ctx.obj.get("debug", False)
+    ctx.obj.setdefault("quiet", False)
+    ctx.obj.setdefault("debug", False)
 
 
 def main(argv=None):

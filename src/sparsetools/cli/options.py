@@ -1,26 +1,41 @@
-"""Options shared by several commands (declared once, here) and validation callbacks.
+"""Options shared by several commands, declared once here (rasterio's ``rio/options.py``).
 
-Every option that two commands have in common is declared by a function of this module,
-so it is spelt, checked and documented the same way everywhere. Callbacks validate with
-:mod:`sparsetools.validate` and turn its errors into ``click.BadParameter``.
+Every option name has one declaration, hence one meaning, one type and one help text in every
+command that has it (tests/test_vocabulary.py checks it). Their callbacks only parse
+(:mod:`.parsing`); old spellings live on as hidden aliases (:mod:`.deprecation`).
 """
 
 from __future__ import annotations
 
 import functools
-import json
 import logging
 from pathlib import Path
 
 import click
 
-from ..errors import ParameterError
+from .deprecation import DEPRECATED, deprecated, warn_deprecated
+from .parsing import (
+    build,
+    checked,
+    crop_box,
+    int_list,
+    non_negative,
+    odd,
+    pair,
+    positive,
+    size_metres,
+    size_wxh,
+)
+from .summary import emit_summary
 
 __all__ = [
+    "DEPRECATED",
     "batch_options",
     "build",
     "calib_option",
     "checked",
+    "crop_box",
+    "deprecated",
     "emit_summary",
     "image_option",
     "image_size_option",
@@ -28,6 +43,8 @@ __all__ = [
     "json_option",
     "max_depth_option",
     "min_depth_option",
+    "non_negative",
+    "odd",
     "output_dir_option",
     "overwrite_option",
     "pair",
@@ -35,194 +52,10 @@ __all__ = [
     "quiet_debug_options",
     "resize_option",
     "seed_option",
+    "size_metres",
     "size_wxh",
+    "warn_deprecated",
 ]
-
-
-# -- callbacks: they parse text (the rules themselves are sparsetools.validate's) ------------------
-
-
-def checked(fn):
-    """Adapt ``fn(value) -> value`` raising ParameterError into a click callback."""
-
-    def callback(ctx, param, value):
-        if value is None:
-            return None
-        try:
-            return fn(value)
-        except ParameterError as exc:  # click names the option itself
-            raise click.BadParameter(exc.message) from None
-
-    return callback
-
-
-def build(cls, /, **values):
-    """``cls(**values)``: a settings record made from options, which validates itself; a
-    value it refuses is a usage error naming the option (exit code 2), as click's own are."""
-    try:
-        return cls(**values)
-    except ParameterError as exc:
-        raise click.BadParameter(exc.message, param_hint=exc.option) from None
-
-
-def positive(ctx, param, value):
-    """Callback: a finite number > 0 (None passes)."""
-    from ..validate import check_positive
-
-    return checked(lambda v: check_positive(v, param.name))(ctx, param, value)
-
-
-def non_negative(ctx, param, value):
-    """Callback: a finite number >= 0 (None passes)."""
-    from ..validate import check_non_negative
-
-    return checked(lambda v: check_non_negative(v, param.name))(ctx, param, value)
-
-
-def odd(ctx, param, value):
-    """Callback: an odd integer >= 1 (a window centred on its pixel or frame)."""
-    from ..validate import check_odd
-
-    return checked(lambda v: check_odd(v, param.name))(ctx, param, value)
-
-
-def size_wxh(ctx, param, value):
-    """Callback: ``WxH`` (e.g. 1242x375) -> (W, H) pixels."""
-    from ..validate import parse_size
-
-    return checked(lambda v: parse_size(v, param.name if param else "size"))(ctx, param, value)
-
-
-def size_metres(ctx, param, value):
-    """Callback: ``WxH`` in metres (e.g. 2.35x2.35) -> (W, H) floats."""
-    from ..validate import parse_size
-
-    return checked(lambda v: parse_size(v, param.name, integer=False))(ctx, param, value)
-
-
-def crop_box(ctx, param, value):
-    """Callback: ``WxH+LEFT+TOP`` -> ``(top, left, height, width)``; the pre-0.3 text
-    ``TOP,LEFT,H,W`` is still read, with a deprecation warning."""
-    from ..validate import format_crop, is_legacy_crop, parse_crop
-
-    box = checked(lambda v: parse_crop(v, param.name))(ctx, param, value)
-    if box is not None and is_legacy_crop(value):
-        warn_deprecated(
-            f"--crop {value} (TOP,LEFT,H,W) is the old syntax: write --crop {format_crop(box)} "
-            "(WxH+LEFT+TOP)"
-        )
-    return box
-
-
-def pair(*, integer: bool = False, single: bool = False, low: float | None = None,
-         strict: bool = False):  # fmt: skip
-    """Callback factory: ``A,B`` (and ``V`` for ``(V, V)`` when ``single``) -> an ordered pair
-    of finite numbers, ``A`` above ``low`` (``>`` when ``strict``)."""
-    from ..validate import parse_pair
-
-    def parse(ctx, param, value):
-        def one(v):
-            return parse_pair(v, param.name, integer=integer, single=single, low=low, strict=strict)
-
-        return checked(one)(ctx, param, value)
-
-    return parse
-
-
-def int_list(ctx, param, value):
-    """Callback: ``5,7,9,11`` (or several values) -> a tuple of ints (None when not given)."""
-    from ..validate import parse_int_list
-
-    if value is None or value == ():
-        return None
-    return checked(lambda v: parse_int_list(v, param.name))(ctx, param, value)
-
-
-# -- deprecated spellings (kept one release) ----------------------------------------------------------
-
-#: Old spelling -> the option that replaces it, per command (filled by :func:`deprecated`);
-#: the architecture test checks that every hidden option is one of these and that it warns.
-DEPRECATED: dict[tuple[str, str], str] = {}
-_DEPRECATED_KEY = "sparsetools.deprecated"
-
-
-def warn_deprecated(text: str) -> None:
-    """One deprecation warning line on stderr (once per message and run)."""
-    ctx = click.get_current_context(silent=True)
-    seen = ctx.find_root().meta.setdefault("sparsetools.warned", set()) if ctx else set()
-    if text in seen:
-        return
-    seen.add(text)
-    logging.getLogger("sparsetools.cli").warning("deprecated: %s", text)
-
-
-def deprecated(
-    old: str,
-    new: str,
-    *,
-    command: str,
-    dest: str,
-    value=None,
-    is_flag: bool = False,
-    convert=None,
-    metavar: str | None = None,
-):
-    """A hidden alias ``old`` of option ``new`` (stored in parameter ``dest``): it still works
-    for one release and prints a one-line warning naming ``new``.
-
-    The old text goes through ``new``'s own type and callback, so it is read exactly as the
-    new option reads it; ``convert(text) -> text`` first rewrites it where the syntax changed
-    too (``train --crop HxW`` -> ``--crop-size WxH``). ``value`` (for a flag) is the new
-    option's value the old flag means (``--no-confidence`` -> ``--conf-format none``). Giving
-    both spellings is a usage error.
-    """
-    DEPRECATED[(command, old)] = new
-
-    def remember(ctx, param, given):
-        if given is None or (is_flag and not given):
-            return
-        ctx.meta.setdefault(_DEPRECATED_KEY, {})[old] = given
-
-    def deco(f):
-        @functools.wraps(f)
-        def command_fn(*args, **kw):
-            ctx = click.get_current_context()
-            store = ctx.meta.get(_DEPRECATED_KEY, {})
-            if old in store:
-                from click.core import ParameterSource
-
-                if ctx.get_parameter_source(dest) not in (None, ParameterSource.DEFAULT):
-                    raise click.UsageError(f"{old} is the old spelling of {new}: give {new} only")
-                warn_deprecated(f"{old} is now {new} (the old spelling goes in 0.4)")
-                if value is not None:
-                    kw[dest] = value
-                else:
-                    target = next(p for p in ctx.command.params if p.name == dest)
-                    text = store[old]
-                    if convert is not None:
-                        try:
-                            text = convert(text)
-                        except (TypeError, ValueError) as exc:
-                            raise click.BadParameter(str(exc), param_hint=old) from None
-                    try:
-                        kw[dest] = target.process_value(ctx, text)
-                    except click.BadParameter as exc:
-                        exc.param_hint = old  # name what the user typed
-                        raise
-            return f(*args, **kw)
-
-        return click.option(
-            old,
-            is_flag=is_flag,
-            default=None,
-            hidden=True,
-            metavar=metavar,
-            expose_value=False,
-            callback=remember,
-            help=f"Deprecated: use {new}.",
-        )(command_fn)
-
-    return deco
 
 
 # -- shared declarations -------------------------------------------------------------------------
@@ -284,13 +117,20 @@ def image_option(f=None, *, help: str | None = None, required: bool = False):
     return deco(f) if f is not None else deco
 
 
-def image_size_option(f):
-    return click.option(
-        "--image-size",
-        callback=size_wxh,
-        metavar="WxH",
-        help="Image size when the calibration does not hold it (e.g. 1242x375).",
-    )(f)
+def image_size_option(f=None, *, default: str | None = None, help: str | None = None):
+    """``--image-size WxH``: the camera image's size in pixels."""
+
+    def deco(fn):
+        return click.option(
+            "--image-size",
+            callback=size_wxh,
+            default=default,
+            show_default=default is not None,
+            metavar="WxH",
+            help=help or "Image size when the calibration does not hold it (e.g. 1242x375).",
+        )(fn)
+
+    return deco(f) if f is not None else deco
 
 
 def min_depth_option(f=None, *, default: float | None = 0.1, help: str | None = None):
@@ -341,8 +181,10 @@ def crop_option(f=None, *, help: str | None = None):
         return click.option(
             "--crop",
             callback=crop_box,
-            metavar="TOP,LEFT,H,W",
-            help=help or "Then crop to H x W pixels at (TOP, LEFT), e.g. 100,0,350,800.",
+            metavar="WxH+LEFT+TOP",
+            help=help
+            or "Then crop to W x H pixels from column LEFT, row TOP, e.g. "
+            "800x350+0+100 (ImageMagick's geometry).",
         )(fn)
 
     return deco(f) if f is not None else deco
@@ -479,6 +321,33 @@ def root_flag(name: str) -> bool:
         return False
     obj = ctx.find_root().obj
     return bool(obj and obj.get(name))
+
+
+def split_option(dest: str = "split", *, default: str | None = None, help: str):
+    """``--split NAME``: one split of a dataset (``train``, ``val``, ``test``...)."""
+
+    def deco(fn):
+        return click.option(
+            "--split", dest, default=default, show_default=default is not None, metavar="NAME",
+            help=help,
+        )(fn)  # fmt: skip
+
+    return deco
+
+
+def threads_option(f=None, *, default: int | None = 1, help: str):
+    """``--threads N``: threads inside this one process (the results never depend on it)."""
+
+    def deco(fn):
+        return click.option(
+            "--threads",
+            type=click.IntRange(min=1),
+            default=default,
+            show_default=default is not None,
+            help=help,
+        )(fn)
+
+    return deco(f) if f is not None else deco
 
 
 def workers_option(f=None, *, help: str):
@@ -683,55 +552,3 @@ def sweeps_option(f=None, *, default: int | None = None, help: str):
         )(fn)
 
     return deco(f) if f is not None else deco
-
-
-# -- output --------------------------------------------------------------------------------------
-
-
-def emit_summary(summary, *, as_json: bool, title: str = "") -> None:
-    """Print a run summary (a RunSummary or a dict) on stdout (key: value lines, or JSON);
-    exit 1 if frames failed."""
-    if hasattr(summary, "as_dict"):
-        summary = summary.as_dict()
-    if as_json:
-        click.echo(json.dumps(summary, indent=1, default=_json_default))
-    else:
-        if title:
-            click.echo(title)
-        rows = _flatten({k: v for k, v in summary.items() if k != "failures"})
-        width = max((len(k) for k, _ in rows), default=0)
-        for k, v in rows:
-            if isinstance(v, float):
-                v = f"{v:.4g}"
-            click.echo(f"{k:<{width}}  {v}")
-        for fid, err in (summary.get("failures") or {}).items():
-            click.echo(f"  failed {fid}: {err}")
-    if summary.get("failed"):
-        ctx = click.get_current_context()
-        click.echo(f"Error: {summary['failed']} frame(s) failed (listed above)", err=True)
-        ctx.exit(1)
-
-
-def _flatten(d: dict, prefix: str = "") -> list[tuple[str, object]]:
-    """Nested dicts become ``parent.child`` rows; underscores of the summary's own names read
-    as spaces (nested keys are data, frame ids say: kept as they are)."""
-    rows = []
-    for k, v in d.items():
-        key = f"{prefix}{k!s}" if prefix else str(k).replace("_", " ")
-        if isinstance(v, dict):
-            rows.extend(_flatten(v, key + "."))
-        else:
-            rows.append((key, v))
-    return rows
-
-
-def _json_default(o):
-    import numpy as np
-
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")

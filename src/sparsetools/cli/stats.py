@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from .options import json_option, quiet_debug_options
+from .options import json_option, max_depth_option, quiet_debug_options
 
 _COLUMNS = (
     ("points", "points", "{:d}"),
@@ -41,13 +41,7 @@ def _cell(value, fmt: str) -> str:
     help="Reference depth map or folder (e.g. LiDAR), matched by file name: adds the "
     "intrinsic error (delta1, delta2, RMSE at pixels valid in both).",
 )
-@click.option(
-    "--max-depth",
-    type=click.FloatRange(min=0, min_open=True),
-    default=80.0,
-    show_default=True,
-    help="Reference depths above this (m) are not evaluated.",
-)
+@max_depth_option(default=80.0, help="Reference depths above this (m) are not evaluated.")
 @json_option(help="Print per-frame and aggregate values as JSON.")
 @quiet_debug_options
 def stats(depth, reference, max_depth, as_json):

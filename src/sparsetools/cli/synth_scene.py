@@ -9,11 +9,12 @@ from click.core import ParameterSource
 
 from .options import (
     emit_summary,
+    image_size_option,
     json_option,
     output_dir_option,
     overwrite_option,
     quiet_debug_options,
-    size_wxh,
+    seed_option,
     warn_deprecated,
     workers_option,
 )
@@ -31,7 +32,7 @@ _SINGLE_ONLY = ("underwater_frames", "stem_prefix")
     help="Output folder (a folder this command made with the same options is kept as it is; "
     "other options are refused unless --overwrite).",
 )
-@click.option("--seed", type=int, default=0, show_default=True, help="Scene layout and noise seed.")
+@seed_option(help="Scene layout and noise seed.")
 @click.option(
     "--frames",
     type=click.IntRange(min=1),
@@ -40,12 +41,8 @@ _SINGLE_ONLY = ("underwater_frames", "stem_prefix")
     help="Street frames (one sequence; the ego drives ~1 m per frame). Video mode: frames "
     "per sequence at 10 Hz (default 30).",
 )
-@click.option(
-    "--image-size",
-    callback=size_wxh,
+@image_size_option(
     default="1242x375",
-    show_default=True,
-    metavar="WxH",
     help="Camera resolution (intrinsics scale with it). Video mode default 416x128.",
 )
 @click.option(

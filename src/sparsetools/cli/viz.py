@@ -87,7 +87,7 @@ def viz(
     from ..pipeline.viz import VizSettings, default_labels, render_viz
 
     if out_dir.suffix.lower() not in (".png", ".jpg", ".jpeg"):
-        raise click.BadParameter("output must be .png or .jpg", param_hint="--out")
+        raise click.BadParameter("the picture is written as .png or .jpg", param_hint="--out")
     if labels is not None and labels != [""] and len(labels) != len(depth):
         raise click.BadParameter(
             f"{len(labels)} label(s) for {len(depth)} depth map(s)", param_hint="--labels"

@@ -230,21 +230,17 @@ def plan_selection(clouds: list[Path], settings: BeamsSettings) -> _Plan:
     """
     method, n_lasers = _resolved(settings, clouds[0])
     if settings.rings is not None:
-        rings = tuple(sorted(int(k) for k in settings.rings))
-        if len(set(rings)) != len(rings) or rings[0] < 0 or rings[-1] >= n_lasers:
-            raise ParameterError(
-                f"--rings must be distinct values in 0..{n_lasers - 1}, got {settings.rings}"
-            )
+        rings = tuple(sorted(check_int_range(k, "rings", low=0, high=n_lasers - 1)
+                             for k in settings.rings))  # fmt: skip
+        if len(set(rings)) != len(rings):
+            raise ParameterError(f"a ring is given twice: {settings.rings}", param="rings")
         return _Plan((("", len(rings), rings, None),), modes=("rings",))
     if settings.mode == "pl++":
         if settings.line_spec is not None:
-            spec = tuple(settings.line_spec)
-            bad = [b for b in spec if not 0 <= b < settings.pl_height]
-            if bad or len(set(spec)) != len(spec):
-                raise ParameterError(
-                    f"--line-spec bins must be distinct values in 0..{settings.pl_height - 1}, "
-                    f"got {spec}"
-                )
+            spec = tuple(check_int_range(b, "line_spec", low=0, high=settings.pl_height - 1)
+                         for b in settings.line_spec)  # fmt: skip
+            if len(set(spec)) != len(spec):
+                raise ParameterError(f"a bin is given twice: {spec}", param="line_spec")
             return _Plan((("", len(spec), None, spec),), modes=("pl++",))
         items = []
         for n in settings.n:

@@ -408,9 +408,6 @@ class DatasetJob(BatchJob[DatasetFrameInput]):
     unmatched, split_lists, plan_seconds
         What finding the inputs reported (:class:`BuildInputs`), for the summary and the
         manifest's metadata.
-    overwrite : bool
-        The run replaces the dataset (``--overwrite``): rows of frames it does not build are
-        dropped.
     frames_per_part : int
         Frames per ``sparse/part-*.parquet`` file.
     """
@@ -423,7 +420,6 @@ class DatasetJob(BatchJob[DatasetFrameInput]):
     unmatched: Mapping[str, int] = field(default_factory=dict)
     split_lists: Mapping[str, int] | None = None
     plan_seconds: float = 0.0
-    overwrite: bool = False
     frames_per_part: int = 1000
 
     def __post_init__(self) -> None:
@@ -431,14 +427,11 @@ class DatasetJob(BatchJob[DatasetFrameInput]):
 
     @classmethod
     def for_inputs(
-        cls, settings: BuildSettings, found: BuildInputs, *, overwrite: bool = False,
-        frames_per_part: int = 1000,
-    ) -> DatasetJob:  # fmt: skip
-        """The job building the frames ``found`` (``overwrite``: ``batch.overwrite``)."""
-        return cls(
-            settings, found.unmatched, found.split_lists, found.seconds, overwrite=overwrite,
-            frames_per_part=frames_per_part,
-        )  # fmt: skip
+        cls, settings: BuildSettings, found: BuildInputs, *, frames_per_part: int = 1000
+    ) -> DatasetJob:
+        """The job building the frames ``found``."""
+        return cls(settings, found.unmatched, found.split_lists, found.seconds,
+                   frames_per_part=frames_per_part)  # fmt: skip
 
     def record(self) -> dict:
         # Split files are recorded as sparsetools 0.2 wrote them (str of each item), so that
@@ -481,7 +474,8 @@ class DatasetJob(BatchJob[DatasetFrameInput]):
         return stage_frame(task.inputs, task.outputs, self.settings)
 
     def finish(self, summary: RunSummary, tasks: list[FrameTask], out_dir: Path) -> dict:
-        """Merge the staged frames into the manifest and parts; the build's totals."""
+        """Merge the staged frames into the manifest and parts (with ``--overwrite``, rows of
+        frames this run does not build are dropped); the build's totals."""
         t0 = time.perf_counter()
         s = self.settings
         split = s.split_method()
@@ -498,7 +492,7 @@ class DatasetJob(BatchJob[DatasetFrameInput]):
             assignment=given,
             info=info,
             frames_per_part=self.frames_per_part,
-            only={t.inputs.id for t in tasks} if self.overwrite else None,
+            only={t.inputs.id for t in tasks} if summary.overwrite else None,
         )
         stats = self.stats(summary)
         stages = {"t_plan": round(self.plan_seconds, 4)}
@@ -610,9 +604,7 @@ def build_dataset(
         settings, rgb=rgb, sparse=sparse, gt=gt, confidence=confidence, calib=calib,
         camera=camera,
     )  # fmt: skip
-    job = DatasetJob.for_inputs(
-        settings, found, overwrite=batch.overwrite, frames_per_part=frames_per_part
-    )
+    job = DatasetJob.for_inputs(settings, found, frames_per_part=frames_per_part)
     return run_job(job, found.frames, out_dir, batch=batch, inputs=found.roots, desc="dataset")
 
 

@@ -20,6 +20,7 @@ from pathlib import Path
 
 from ...errors import ParameterError
 from ...io.dataset import check_relative_path
+from ...validate import check_non_negative
 
 __all__ = [
     "DEFAULT_SPLIT",
@@ -50,7 +51,7 @@ def parse_split_fractions(text: str | Mapping[str, float]) -> dict[str, float]:
                 for s in items:
                     k, _, v = s.partition("=")
                     if not k.strip() or k.strip() in fractions:
-                        raise ParameterError(f"split names must be unique and non-empty: {text!r}")
+                        raise ParameterError(f"a split name is empty or given twice: {text!r}")
                     fractions[k.strip()] = float(v)
             elif 2 <= len(items) <= 3 and not any("=" in s for s in items):
                 fractions = dict(
@@ -63,13 +64,12 @@ def parse_split_fractions(text: str | Mapping[str, float]) -> dict[str, float]:
         except ValueError as exc:
             if isinstance(exc, ParameterError):
                 raise
-            raise ParameterError(f"split fractions must be numbers, got {text!r}") from None
+            raise ParameterError(f"expected split fractions as numbers, got {text!r}") from None
     if not fractions:
         raise ParameterError("no split fractions given")
     for name, f in fractions.items():
         check_relative_path(name, what="split name")
-        if not math.isfinite(f) or f < 0:
-            raise ParameterError(f"split fraction of '{name}' must be >= 0, got {f}")
+        check_non_negative(f, f"split fraction of '{name}'")
     total = sum(fractions.values())
     if abs(total - 1.0) > 1e-6:
         raise ParameterError(f"split fractions must sum to 1, got {total:g}")
@@ -104,7 +104,7 @@ def sequence_resolver(spec: str, default: str) -> Callable[[str], str]:
             return seq
 
         return fn
-    raise ParameterError(f"--sequence-from must be 'parent' or 'regex:PATTERN', got {spec!r}")
+    raise ParameterError(f"expected parent or regex:PATTERN, got {spec!r}", param="sequence_from")
 
 
 # -- split files -----------------------------------------------------------------------------------
