@@ -496,7 +496,7 @@ def _(tmp):
     return Setup(_beams(tmp, "--rings", "0,500"))
 
 
-@case("beams/n-zero", expect="usage", match="beam counts must be >= 1")
+@case("beams/n-zero", expect="usage", match="values must be >= 1")
 def _(tmp):
     return Setup(_beams(tmp, "--n", "0"))
 
@@ -678,7 +678,7 @@ def _(tmp):
     return Setup(["equalize", f["image"], "--reference", "nope", "-o", OUT(tmp)])
 
 
-@case("equalize/clip-zero", expect="usage", match="clip limit")
+@case("equalize/clip-zero", expect="usage", match="--clip': must be a finite number > 0")
 def _(tmp):
     f = good_frame(IN(tmp))
     return Setup(["equalize", f["image"], "--clip", "0", "-o", OUT(tmp)])
@@ -1252,7 +1252,7 @@ def _(tmp):
     return Setup(["synth-scene", "-o", OUT(tmp), "--check", IN(tmp) / "scene"])
 
 
-@case("synth-scene/image-size-zero", expect="usage", match="positive")
+@case("synth-scene/image-size-zero", expect="usage", match="must be finite and > 0")
 def _(tmp):
     return Setup(["synth-scene", "-o", OUT(tmp), "--image-size", "0x16"])
 

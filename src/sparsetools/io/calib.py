@@ -473,6 +473,7 @@ def frame_calibration(
             "image size missing: give --image-size WxH or --image IMG "
             f"(calibration {calib.source or calib_path or '?'} holds no size)"
         )
+    check_pixel_count(calib.width, calib.height, "image")
     check_principal_point(calib, given_by=given_by)
     if resize is not None:
         calib = calib.resized(resize)
