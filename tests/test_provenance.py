@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import sys
@@ -226,7 +227,11 @@ def test_record_lists_input_identity(tmp_path):
     assert ident.path == str(src[0].resolve()) and ident.size == src[0].stat().st_size
     assert ident.sha256 is not None  # small file: hashed
     line = json.loads((out / ".sparsetools" / "frames.jsonl").read_text().splitlines()[0])
-    assert set(line) == {"key", "outputs", "inputs", "stats"}
+    assert set(line) == {"key", "outputs", "inputs", "stats", "output_ids"}
+    written = (out / "000000.bin").read_bytes()
+    size, mtime, digest = line["output_ids"]["data"]
+    assert size == len(written) and mtime == (out / "000000.bin").stat().st_mtime_ns
+    assert digest == hashlib.blake2b(written, digest_size=16).hexdigest()
 
 
 def test_identity_of_a_large_file_has_no_hash(tmp_path):

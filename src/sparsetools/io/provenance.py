@@ -17,6 +17,7 @@ end of a run. This module only reads and writes that record; the resume rule bui
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import json
 import os
@@ -34,15 +35,21 @@ __all__ = [
     "FileIdentity",
     "FrameJournal",
     "FrameRecord",
+    "OutputIdentity",
     "RunRecord",
+    "check_record_dir",
     "file_identity",
     "file_record_path",
     "hold_lock",
+    "iter_frame_records",
+    "output_identity",
+    "output_unchanged",
     "read_file_record",
     "read_frame_records",
     "read_run_record",
     "recorded_outputs",
     "remove_empty_record_dir",
+    "unchanged_since",
     "write_file_record",
     "write_frame_records",
     "write_run_record",
@@ -72,8 +79,13 @@ class FileIdentity:
 
     @classmethod
     def from_list(cls, item) -> FileIdentity:
+        """From a record's ``[path, size, mtime_ns, sha256]`` (types checked: a record is
+        untrusted input)."""
         path, size, mtime, sha = item
-        return cls(str(path), int(size), int(mtime), None if sha is None else str(sha))
+        if not (isinstance(path, str) and _is_int(size) and _is_int(mtime)
+                and (sha is None or isinstance(sha, str))):  # fmt: skip
+            raise TypeError("not a file identity")
+        return cls(path, int(size), int(mtime), sha)
 
     def same_file(self, other: FileIdentity) -> bool:
         """Unchanged: same size and (same mtime, or the same recorded hash)."""
@@ -82,6 +94,10 @@ class FileIdentity:
         if self.mtime_ns == other.mtime_ns:
             return True
         return self.sha256 is not None and self.sha256 == other.sha256
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
 
 
 def file_identity(
@@ -123,6 +139,23 @@ def file_identity(
     return _regular_identity(str(p), st, hash_limit)
 
 
+def unchanged_since(before: FileIdentity, path: str | os.PathLike) -> bool:
+    """Whether ``path`` is still the file ``before`` identified (one ``stat`` when it is):
+    an input changed while its frame ran is caught by comparing this after the frame."""
+    if before.size == 0 and before.mtime_ns == 0 and before.sha256 is not None:
+        now = file_identity(path)  # a folder of calibration files: its files' identities
+        return now.sha256 == before.sha256
+    try:
+        st = os.stat(path)
+    except OSError:
+        return before.size == -1
+    if st.st_size != before.size:
+        return False
+    if st.st_mtime_ns == before.mtime_ns:
+        return True
+    return before.sha256 is not None and file_identity(path).sha256 == before.sha256
+
+
 def _regular_identity(path: str, st: os.stat_result, hash_limit: int) -> FileIdentity:
     sha = None
     if st.st_size <= hash_limit:
@@ -152,34 +185,103 @@ class RunRecord:
 
 
 @dataclass(frozen=True)
+class OutputIdentity:
+    """What identifies an output as the one a run wrote: its size, modification time and a
+    BLAKE2b digest of its bytes (a truncated or damaged output no longer matches)."""
+
+    size: int
+    mtime_ns: int
+    digest: str
+
+    def to_list(self) -> list:
+        return [self.size, self.mtime_ns, self.digest]
+
+    @classmethod
+    def from_list(cls, item) -> OutputIdentity:
+        size, mtime, digest = item
+        if not (_is_int(size) and _is_int(mtime) and isinstance(digest, str)):
+            raise TypeError("not an output identity")
+        return cls(int(size), int(mtime), digest)
+
+
+def output_identity(path: str | os.PathLike) -> OutputIdentity | None:
+    """The identity of an output file (None when it is not a regular file)."""
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
+    except OSError:
+        return None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            return None
+        h = hashlib.blake2b(digest_size=16)
+        while chunk := os.read(fd, 1 << 20):
+            h.update(chunk)
+    finally:
+        os.close(fd)
+    return OutputIdentity(int(st.st_size), int(st.st_mtime_ns), h.hexdigest())
+
+
+def output_unchanged(path: str | os.PathLike, recorded: OutputIdentity) -> bool:
+    """The output is the one recorded: same size, and the same mtime or the same digest."""
+    try:
+        st = os.lstat(path)
+    except OSError:
+        return False
+    if not stat.S_ISREG(st.st_mode) or st.st_size != recorded.size:
+        return False
+    if st.st_mtime_ns == recorded.mtime_ns:
+        return True
+    now = output_identity(path)
+    return now is not None and now.digest == recorded.digest
+
+
+@dataclass(frozen=True)
 class FrameRecord:
-    """One frame of a folder: its outputs by role (paths relative to the folder) and inputs."""
+    """One frame of a folder: its outputs by role (paths relative to the folder), their
+    identities (what was written), its inputs' identities and its statistics."""
 
     key: str
     outputs: Mapping[str, str]
     inputs: tuple[FileIdentity, ...] = ()
     stats: Mapping = field(default_factory=dict)
+    output_ids: Mapping[str, OutputIdentity] = field(default_factory=dict)
 
     def to_line(self) -> str:
-        return json.dumps(
-            {
-                "key": self.key,
-                "outputs": dict(self.outputs),
-                "inputs": [i.to_list() for i in self.inputs],
-                "stats": dict(self.stats),
-            },
-            sort_keys=True,
-            default=_json_number,
-        )
+        d = {
+            "key": self.key,
+            "outputs": dict(self.outputs),
+            "inputs": [i.to_list() for i in self.inputs],
+            "stats": dict(self.stats),
+        }
+        if self.output_ids:
+            d["output_ids"] = {k: v.to_list() for k, v in self.output_ids.items()}
+        return json.dumps(d, sort_keys=True, default=_json_number)
 
     @classmethod
     def from_line(cls, line: str) -> FrameRecord:
+        """A record line (every field's type checked: ValueError/TypeError when one is off)."""
         d = json.loads(line)
+        if not isinstance(d, dict) or not isinstance(d.get("key"), str):
+            raise TypeError("not a frame record")
+        outputs = d.get("outputs")
+        if not isinstance(outputs, dict) or not all(
+            isinstance(k, str) and isinstance(v, str) for k, v in outputs.items()
+        ):
+            raise TypeError("outputs are not role -> path strings")
+        inputs = d.get("inputs", [])
+        if not isinstance(inputs, list):
+            raise TypeError("inputs are not a list")
+        ids = d.get("output_ids", {})
+        if not isinstance(ids, dict):
+            raise TypeError("output identities are not a mapping")
+        stats = d.get("stats")
         return cls(
-            str(d["key"]),
-            {str(k): str(v) for k, v in d["outputs"].items()},
-            tuple(FileIdentity.from_list(i) for i in d.get("inputs", ())),
-            d.get("stats") if isinstance(d.get("stats"), dict) else {},
+            d["key"],
+            dict(outputs),
+            tuple(FileIdentity.from_list(i) for i in inputs),
+            stats if isinstance(stats, dict) else {},
+            {str(k): OutputIdentity.from_list(v) for k, v in ids.items()},
         )
 
 
@@ -195,75 +297,151 @@ def _dir(out: str | os.PathLike) -> Path:
     return Path(out) / RECORD_DIR
 
 
+#: Largest run record read (bytes): a real one is a few KiB.
+MAX_RUN_RECORD_BYTES = 1 << 20
+#: Largest line of a frame journal read (bytes).
+MAX_FRAME_LINE_BYTES = 1 << 20
+_NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
+
+
+def check_record_dir(out: str | os.PathLike) -> Path:
+    """``OUT/.sparsetools`` when it is a real folder or absent; a link (or anything else) in
+    its place is refused: the record is never read or written through a link."""
+    d = _dir(out)
+    try:
+        st = os.lstat(d)
+    except FileNotFoundError:
+        return d
+    except OSError as exc:
+        raise OutputError(f"cannot read {d}: {exc.strerror or exc}") from exc
+    if stat.S_ISLNK(st.st_mode) or not stat.S_ISDIR(st.st_mode):
+        raise OutputError(
+            f"{d} is not a folder sparsetools made (a symbolic link or a file): remove it or "
+            "use another -o"
+        )
+    return d
+
+
+def _open_record(path: Path):
+    """A record file opened for reading without following a link (None when absent)."""
+    check_record_dir(path.parent.parent)
+    try:
+        fd = os.open(path, os.O_RDONLY | _NOFOLLOW)
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise FormatError(f"{path} is a symbolic link, not a record: use --overwrite") from exc
+        raise FormatError(f"{path}: cannot read ({exc.strerror or exc}); use --overwrite") from exc
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise FormatError(f"{path} is not a regular file, not a record: use --overwrite")
+    return os.fdopen(fd, "rb")
+
+
 def read_run_record(out: str | os.PathLike) -> RunRecord | None:
     """The folder's :class:`RunRecord`, or None when it has none.
 
     Raises
     ------
     FormatError
-        The record exists but cannot be read.
+        The record exists but cannot be read, is too large, or a field has the wrong type.
     """
     path = _dir(out) / RUN_FILE
-    if not path.is_file():
+    fh = _open_record(path)
+    if fh is None:
         return None
     try:
-        d = json.loads(path.read_text(encoding="utf-8"))
+        with fh:
+            data = fh.read(MAX_RUN_RECORD_BYTES + 1)
+        if len(data) > MAX_RUN_RECORD_BYTES:
+            raise ValueError(f"larger than {MAX_RUN_RECORD_BYTES} bytes")
+        d = json.loads(data.decode("utf-8"))
         if not isinstance(d, dict) or not isinstance(d.get("settings"), dict):
             raise ValueError("not a run record")
-        return RunRecord(str(d["command"]), str(d["version"]), d["settings"])
-    except (OSError, UnicodeDecodeError, ValueError, KeyError) as exc:
+        if not (isinstance(d.get("command"), str) and isinstance(d.get("version"), str)):
+            raise ValueError("command and version are not strings")
+        return RunRecord(d["command"], d["version"], d["settings"])
+    except (OSError, UnicodeDecodeError, ValueError, KeyError, RecursionError) as exc:
+        why = "nested too deeply" if isinstance(exc, RecursionError) else exc
         raise FormatError(
-            f"{path}: unreadable record of what made {out} ({exc}); use --overwrite"
+            f"{path}: unreadable record of what made {out} ({why}); use --overwrite"
         ) from exc
 
 
 def write_run_record(out: str | os.PathLike, record: RunRecord) -> None:
+    check_record_dir(out)
     with atomic_path(_dir(out) / RUN_FILE) as tmp:
         tmp.write_text(json.dumps(record.to_dict(), indent=1, sort_keys=True) + "\n", "utf-8")
 
 
+def iter_frame_records(out: str | os.PathLike) -> Iterator[FrameRecord]:
+    """The frame records of a folder's journal, in file order (a damaged, oversized or
+    mistyped line is skipped: that frame is recomputed)."""
+    path = _dir(out) / FRAMES_FILE
+    fh = _open_record(path)
+    if fh is None:
+        return
+    with fh:
+        while line := fh.readline(MAX_FRAME_LINE_BYTES + 1):
+            if len(line) > MAX_FRAME_LINE_BYTES:
+                while line and not line.endswith(b"\n"):  # the rest of an oversized line
+                    line = fh.readline(MAX_FRAME_LINE_BYTES + 1)
+                continue
+            if not line.strip():
+                continue
+            try:
+                yield FrameRecord.from_line(line.decode("utf-8"))
+            except (ValueError, KeyError, TypeError, AttributeError, RecursionError):
+                continue  # a line cut short by a crash (or edited): that frame is recomputed
+
+
 def read_frame_records(out: str | os.PathLike) -> dict[str, FrameRecord]:
     """Frame records by key (the last line of a key wins; a damaged line is skipped)."""
-    path = _dir(out) / FRAMES_FILE
     records: dict[str, FrameRecord] = {}
-    if not path.is_file():
-        return records
     try:
-        text = path.read_text(encoding="utf-8", errors="replace")
+        for rec in iter_frame_records(out):
+            records[rec.key] = rec
     except OSError as exc:
-        raise FormatError(f"{path}: cannot read ({exc.strerror or exc}); use --overwrite") from exc
-    for line in text.splitlines():
-        if not line.strip():
-            continue
-        try:
-            rec = FrameRecord.from_line(line)
-        except (ValueError, KeyError, TypeError, AttributeError):
-            continue  # a line cut short by a crash: that frame is recomputed
-        records[rec.key] = rec
+        raise FormatError(
+            f"{_dir(out) / FRAMES_FILE}: cannot read ({exc.strerror or exc}); use --overwrite"
+        ) from exc
     return records
 
 
 def write_frame_records(out: str | os.PathLike, records: Mapping[str, FrameRecord]) -> None:
     """Rewrite ``frames.jsonl`` atomically with ``records`` sorted by key."""
+    check_record_dir(out)
     path = _dir(out) / FRAMES_FILE
     if not records:
-        with contextlib.suppress(FileNotFoundError):
-            path.unlink()
+        if os.path.islink(path) or os.path.isfile(path):
+            with contextlib.suppress(FileNotFoundError):
+                path.unlink()
         return
     with atomic_path(path) as tmp:
         tmp.write_text("".join(records[k].to_line() + "\n" for k in sorted(records)), "utf-8")
 
 
 class FrameJournal:
-    """Appends frame records to ``frames.jsonl`` as frames complete (one writer: the parent)."""
+    """Appends frame records to ``frames.jsonl`` as frames complete (one writer: the parent;
+    the journal is opened without following a link)."""
 
     def __init__(self, out: str | os.PathLike):
         self.path = _dir(out) / FRAMES_FILE
         self._fh = None
 
     def __enter__(self) -> FrameJournal:
+        check_record_dir(self.path.parent.parent)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._fh = open(self.path, "a", encoding="utf-8")
+        flags = os.O_WRONLY | os.O_APPEND | os.O_CREAT | _NOFOLLOW | getattr(os, "O_CLOEXEC", 0)
+        try:
+            fd = os.open(self.path, flags, 0o666)
+        except OSError as exc:
+            raise OutputError(
+                f"{self.path}: cannot write the record ({exc.strerror or exc}): a symbolic link "
+                "or an unwritable file in its place; use --overwrite or another -o"
+            ) from exc
+        self._fh = os.fdopen(fd, "a", encoding="utf-8")
         return self
 
     def append(self, record: FrameRecord) -> None:
@@ -285,10 +463,13 @@ def hold_lock(out: str | os.PathLike) -> Iterator[None]:
     """
     import fcntl
 
-    d = _dir(out)
+    d = check_record_dir(out)
     try:
         d.mkdir(parents=True, exist_ok=True)
-        fh = open(d / LOCK_FILE, "a+")
+        check_record_dir(out)  # a link made in between is refused too
+        fd = os.open(d / LOCK_FILE, os.O_RDWR | os.O_CREAT | _NOFOLLOW | getattr(os, "O_CLOEXEC", 0),
+                     0o666)  # fmt: skip
+        fh = os.fdopen(fd, "a+")
     except OSError as exc:
         raise OutputError(f"cannot write into {out}: {exc.strerror or exc}") from exc
     try:
@@ -311,6 +492,10 @@ def recorded_outputs(folder: str | os.PathLike, role: str | None = None) -> dict
     decides). A record whose task covers several frames (``underwater`` segments) names its
     outputs ``<role>@<frame key>``.
     """
+    try:
+        check_record_dir(folder)
+    except OutputError:
+        return None  # a link in place of the record: no record to trust
     if not (_dir(folder) / RUN_FILE).is_file():
         return None
     try:
@@ -322,13 +507,15 @@ def recorded_outputs(folder: str | os.PathLike, role: str | None = None) -> dict
         if len(roles) != 1:
             return None
         role = next(iter(roles))
-    root = Path(folder)
+    from .containment import contained_record_path
+
     out = {}
     for k, rec in records.items():
         for r, rel in rec.outputs.items():
             base, _, key = r.partition("@")
-            if base == role:
-                out[key or k] = root / rel
+            path = contained_record_path(folder, rel)  # never a file outside the folder
+            if base == role and path is not None:
+                out[key or k] = path
     return out
 
 
@@ -336,6 +523,10 @@ def remove_empty_record_dir(out: str | os.PathLike, *, run_record: bool = False)
     """Remove what a run that wrote nothing left in ``OUT/.sparsetools``: the lock (and, with
     ``run_record``, its run record and an empty journal); the folder too when it is empty."""
     d = _dir(out)
+    try:
+        check_record_dir(out)
+    except OutputError:
+        return  # not ours to clean
     if not d.is_dir():
         return
     names = [LOCK_FILE]

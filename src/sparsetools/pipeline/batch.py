@@ -82,6 +82,8 @@ class FrameResult:
     skipped: bool = False
     recomputed: bool = False
     detail: str = ""
+    #: identity of each output the job wrote (role -> OutputIdentity), taken where it ran
+    output_ids: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -101,6 +103,8 @@ class RunSummary:
     removed_stale: int = 0
     #: the run replaced the folder's results (``--overwrite``)
     overwrite: bool = False
+    #: frames done whose inputs changed while they ran: not recorded (recomputed next time)
+    inputs_changed: list[str] = field(default_factory=list)
 
     @property
     def done(self) -> list[FrameResult]:
@@ -142,6 +146,8 @@ class RunSummary:
         out.update(self.totals)
         if self.removed_stale:
             out["removed_stale"] = self.removed_stale
+        if self.inputs_changed:
+            out["inputs_changed_during_run"] = list(self.inputs_changed)
         if self.output is not None:
             out.setdefault("output", str(self.output))
         out["seconds"] = round(self.seconds, 3)

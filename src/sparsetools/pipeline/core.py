@@ -43,6 +43,7 @@ from typing import Any, ClassVar, Generic, TypeVar
 
 from ..errors import FrameError, OutputError, ParameterError, SparsetoolsError
 from ..io.atomic import remove_stale_temporaries
+from ..io.provenance import output_identity
 from .batch import Batch, FrameResult, RunSummary
 from .provenance import OutputFolder, option_names, settings_dict
 
@@ -251,7 +252,11 @@ class _Guarded:
             stats = self.fn(task) or {}
             if isinstance(stats, FrameStats):
                 stats = stats.to_record()
-            return FrameResult(task.frame_id, True, stats)
+            # what was written, read where it was written (in parallel, before the parent
+            # records it): a later truncation or edit of an output is then noticed
+            ids = {role: output_identity(p) for role, p in task.outputs.items()}
+            return FrameResult(task.frame_id, True, stats,
+                               output_ids={r: i for r, i in ids.items() if i is not None})  # fmt: skip
         except SparsetoolsError as exc:
             detail = traceback.format_exc() if self.debug else ""
             return FrameResult(
@@ -337,8 +342,6 @@ def run_frames(
     tasks = list(tasks)
     _check_tasks(tasks)
     t0 = time.perf_counter()
-    for folder in {p.parent for t in tasks for p in t.output_paths}:
-        remove_stale_temporaries(folder, recursive=False)
     by_id = {t.frame_id: t for t in tasks}
     results: dict[str, FrameResult] = {}
     summary = RunSummary(
@@ -351,6 +354,8 @@ def run_frames(
         todo = [t for t in tasks if batch.overwrite or not done(t)]
         skipped = [t for t in tasks if t not in todo]
         recorded: dict[str, dict] = {}
+        for folder in {p.parent for t in tasks for p in t.output_paths}:
+            remove_stale_temporaries(folder, recursive=False)
         if before is not None:
             before()
         _execute(fn, todo, batch, results, None, set(), desc or "frames", on_done, by_id)
@@ -379,6 +384,7 @@ def run_frames(
                 )  # fmt: skip
             finally:
                 summary.removed_stale = folder.removed_stale
+                summary.inputs_changed = sorted(folder.inputs_changed)
     for t in skipped:
         results[t.frame_id] = FrameResult(
             t.frame_id, True, stats=recorded.get(t.frame_id, {}), skipped=True
@@ -406,7 +412,7 @@ def _execute(fn, todo, batch, results, folder, recomputed, desc, on_done, by_id)
             results[res.frame_id] = res
             if folder is not None:
                 if res.ok:
-                    folder.record_done(task, res.stats)
+                    folder.record_done(task, res.stats, res.output_ids)
                 else:
                     folder.record_failed(task)
             if on_done is not None:

@@ -28,6 +28,7 @@ from pathlib import Path
 
 from .._version import __version__
 from ..errors import OutputError
+from ..io.containment import ContainedPaths, contained_record_path, remove_output
 from ..io.provenance import (
     RECORD_DIR,
     FileIdentity,
@@ -36,10 +37,13 @@ from ..io.provenance import (
     RunRecord,
     file_identity,
     hold_lock,
+    output_identity,
+    output_unchanged,
     read_file_record,
     read_frame_records,
     read_run_record,
     remove_empty_record_dir,
+    unchanged_since,
     write_file_record,
     write_frame_records,
     write_run_record,
@@ -232,6 +236,8 @@ class OutputFolder:
         self._had_record = False
         self._run_written = False
         self._outputs: list[Path] = []
+        self._before: dict[str, tuple[FileIdentity, ...]] = {}
+        self.inputs_changed: set[str] = set()
 
     # -- opening: lock and settings check --------------------------------------------------
     def __enter__(self) -> OutputFolder:
@@ -289,10 +295,19 @@ class OutputFolder:
     def plan(self, tasks: Iterable, complete=None, *, shared: Iterable = ()) -> Plan:
         """Split ``tasks`` into what to compute and what is up to date.
 
-        ``complete(task) -> bool`` overrides the default completeness test (every output
-        file exists).
+        Every output path is checked to be contained in the folder (no link on the way,
+        :mod:`sparsetools.io.containment`) before anything is written or removed. A frame is
+        up to date when its record names the same outputs, its inputs are unchanged and its
+        outputs are complete (``complete(task) -> bool``, default: every output file exists)
+        and, where they exist, the very files recorded (same size and mtime, or digest).
         """
         tasks = list(tasks)
+        contained = ContainedPaths(self.out)
+        for p in shared:
+            contained.check(p)
+        for t in tasks:
+            for p in t.outputs.values():
+                contained.check(p)
         todo, fresh, recomputed = [], [], set()
         stats: dict[str, dict] = {}
         foreign = []
@@ -303,25 +318,31 @@ class OutputFolder:
         for t in tasks:
             rec = self.records.get(t.frame_id)
             if self.overwrite:
+                self._take_inputs(t)
                 todo.append(t)
                 continue
             if rec is None:
                 existing = [p for p in t.outputs.values() if Path(p).exists()]
                 if existing and not self._had_record:
                     foreign.append(existing[0])
+                self._take_inputs(t)
                 todo.append(t)
                 continue
             outputs_same = rec.outputs == {r: self._rel(p) for r, p in t.outputs.items()}
-            inputs_now = tuple(self.identity(p) for p in t.sources)
+            inputs_now = self._take_inputs(t)
             inputs_same = len(inputs_now) == len(rec.inputs) and all(
                 a.same_file(b) for a, b in zip(rec.inputs, inputs_now, strict=True)
             )
-            if outputs_same and inputs_same and is_complete(t):
+            if outputs_same and inputs_same and is_complete(t) and self._outputs_intact(t, rec):
                 fresh.append(t)
                 stats[t.frame_id] = dict(rec.stats)
-                if any(a != b for a, b in zip(rec.inputs, inputs_now, strict=True)):
-                    # touched but equal by hash: refresh the record so the next run is cheap
-                    self.new_records[t.frame_id] = self._record(t, rec.stats)
+                if not rec.output_ids or any(
+                    a != b for a, b in zip(rec.inputs, inputs_now, strict=True)
+                ):
+                    # touched but equal by hash, or a record without output identities (0.2):
+                    # refresh it so the next run is cheap and checks the outputs
+                    ids = {r: i for r, p in t.outputs.items() if (i := output_identity(p))}
+                    self.new_records[t.frame_id] = self._record(t, rec.stats, ids)
                 continue
             if not inputs_same:
                 recomputed.add(t.frame_id)
@@ -341,24 +362,37 @@ class OutputFolder:
         self._write_run()
         return Plan(todo, fresh, recomputed, stats)
 
+    def _take_inputs(self, task) -> tuple[FileIdentity, ...]:
+        """The identities of ``task``'s inputs now, before it runs (checked again after)."""
+        ids = tuple(self.identity(p) for p in task.sources)
+        self._before[task.frame_id] = ids
+        return ids
+
+    @staticmethod
+    def _outputs_intact(task, rec: FrameRecord) -> bool:
+        """Every recorded output that exists is the file that was written (a truncated or
+        edited one is not: the frame is recomputed)."""
+        for role, ident in rec.output_ids.items():
+            p = task.outputs.get(role)
+            if p is not None and os.path.lexists(p) and not output_unchanged(p, ident):
+                return False
+        return True
+
     def _write_run(self) -> None:
         if not self._run_written:
             write_run_record(self.out, RunRecord(self.command, __version__, self.settings))
             self._run_written = True
 
     def _remove_stale(self, this_run: set[str]) -> None:
-        """With --overwrite: remove recorded outputs of frames this run does not make."""
+        """With --overwrite: remove the recorded outputs of frames this run does not make;
+        only regular files inside the folder (a record naming anything else is ignored)."""
         stale = [k for k in self.records if k not in this_run]
         n = 0
         for k in stale:
             for rel in self.records[k].outputs.values():
-                p = self.out / rel
-                if p.is_file():
-                    try:
-                        p.unlink()
-                        n += 1
-                    except OSError as exc:
-                        log.warning("cannot remove stale output %s: %s", p, exc)
+                p = contained_record_path(self.out, rel)
+                if p is not None and remove_output(self.out, p):
+                    n += 1
             self.dropped.add(k)
         if n:
             log.warning(
@@ -369,20 +403,37 @@ class OutputFolder:
         self.removed_stale = n
 
     # -- recording -------------------------------------------------------------------------
-    def _record(self, task, stats=None) -> FrameRecord:
+    def _record(self, task, stats=None, output_ids=None) -> FrameRecord:
         # Timings (``t_*``) describe one run, not the frame: they are not recorded, so the
         # record of a resumed run equals that of an uninterrupted one.
         kept = {k: v for k, v in (stats or {}).items() if not str(k).startswith("t_")}
+        inputs = self._before.get(task.frame_id)
+        if inputs is None:
+            inputs = tuple(self.identity(p) for p in task.sources)
         return FrameRecord(
             task.frame_id,
             {role: self._rel(p) for role, p in task.outputs.items()},
-            tuple(self.identity(p) for p in task.sources),
+            inputs,
             kept,
+            dict(output_ids or {}),
         )
 
-    def record_done(self, task, stats=None) -> None:
-        """Record a frame whose outputs are all in place (with its statistics)."""
-        rec = self._record(task, stats)
+    def record_done(self, task, stats=None, output_ids=None) -> None:
+        """Record a frame whose outputs are all in place (with its statistics and the
+        identities of its outputs); a frame whose inputs changed while it ran is not
+        recorded (it is recomputed on the next run)."""
+        before = self._before.get(task.frame_id)
+        if before is not None and not all(
+            unchanged_since(b, p) for b, p in zip(before, task.sources, strict=True)
+        ):
+            log.warning(
+                "frame %s: an input changed while the frame ran: not recorded, it is "
+                "recomputed on the next run", task.frame_id,
+            )  # fmt: skip
+            self.inputs_changed.add(task.frame_id)
+            self.record_failed(task)
+            return
+        rec = self._record(task, stats, output_ids)
         self.new_records[task.frame_id] = rec
         self._write_run()
         if self._journal is None:
