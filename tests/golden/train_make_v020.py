@@ -1,14 +1,15 @@
 """Write ``tests/golden/train_v020.json``: what sparsetools 0.2.0 trained on a tiny dataset.
 
 Run with the 0.2.0 code (``git worktree add /tmp/v020 aeafbc4``), from the checkout whose
-golden file it makes (about a minute on one core)::
+golden file it makes (about 30 s on one core)::
 
     PYTHONPATH=/tmp/v020/src python tests/golden/train_make_v020.py
 
 For every case of ``train_cases.py`` (supervised, supervised with the SFE LiDAR branch,
-self-supervised at night with MCIE and SBM, self-supervised with the sparse SILog loss) it
-records the fingerprint of a full two-epoch run, of a run stopped by ``max_steps`` inside the
-second epoch, and of that run resumed to the end. ``tests/test_train_golden.py`` checks that
+self-supervised at night with MCIE and SBM, self-supervised with the sparse SILog loss,
+self-supervised with SFE branches in depth and pose) it records the fingerprint of a full
+two-epoch run, of a run stopped by ``max_steps`` inside the second epoch, and of that run
+resumed to the end. ``tests/test_train_golden.py`` checks that
 today's code gives the same metrics (floats equal), checkpoints (tensors equal) and resume.
 """
 
