@@ -322,7 +322,7 @@ def _nuscenes_dataset(root: Path, out: Path, *extra) -> Path:
     return out
 
 
-ONE_STEP = [*TINY, "--batch-size", "1", "--max-steps", "1", "--crop", "64x128"]
+ONE_STEP = [*TINY, "--batch-size", "1", "--max-steps", "1", "--crop-size", "128x64"]
 
 
 @pytest.mark.real
@@ -372,7 +372,7 @@ def kitti_trees(raw_root, tmp_path_factory):  # noqa: F811
     return raw / trees.DATE, trees._dc_tree(root, sparse=b4, gt=full)
 
 
-KITTI_STEP = [*TINY, "--batch-size", "1", "--max-steps", "1", "--crop", "128x256"]
+KITTI_STEP = [*TINY, "--batch-size", "1", "--max-steps", "1", "--crop-size", "256x128"]
 
 
 @pytest.mark.real
