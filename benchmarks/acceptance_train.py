@@ -166,8 +166,8 @@ def train_and_eval(name: str, ds: Path, runs: Path, args, *, input_mode: str) ->
         "cosine",
         "--final-layer",
     ]
-    if args.crop:
-        common += ["--crop", args.crop]
+    if args.crop_size:
+        common += ["--crop-size", args.crop_size]
     if not (run / "last.pt").is_file():
         sparsetools("train", ds, "-o", run, "--input", input_mode, *common)
     elif _epochs_done(run) < args.epochs:
@@ -335,7 +335,9 @@ def main(argv=None) -> int:
     p.add_argument("--batch-size", type=int, default=4)
     p.add_argument("--lr", type=float, default=2e-3)
     p.add_argument("--loss", default="l1")
-    p.add_argument("--crop", default="", help="training crop HxW (default: full images)")
+    p.add_argument(
+        "--crop-size", default="", help="training crop WxH, e.g. 320x96 (default: full images)"
+    )
     p.add_argument("--no-repeat", action="store_true", help="skip the determinism re-run")
     p.add_argument("--docs", action="store_true", help="write the docs/img/train_*.png pictures")
     args = p.parse_args(argv)
@@ -401,7 +403,8 @@ def main(argv=None) -> int:
         f"Synthetic dataset: {args.sequences} sequences x {args.frames} frames, "
         f"{args.size[0]}x{args.size[1]} px; splits by sequence {counts}.",
         f"Training: --width {args.width} --batch-size {args.batch_size} --epochs {args.epochs} "
-        f"--lr {args.lr} --loss {args.loss} --crop {args.crop or 'none'} --seed 0, 2 CPU threads; "
+        f"--lr {args.lr} --loss {args.loss} --crop-size {args.crop_size or 'none'} --seed 0, "
+        "2 CPU threads; "
         "test split, best.pt (lowest validation RMSE).",
         "",
         table(results),

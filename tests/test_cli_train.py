@@ -14,6 +14,7 @@ pytest.importorskip("torch")
 from sparsetools.cli.main import cli
 from sparsetools.io.image import write_depth_png
 from sparsetools.ops.metrics import METRIC_NAMES
+from sparsetools.train.config import TrainConfig
 from test_train import make_dataset
 
 TINY = ["--width", "4", "--batch-size", "4", "--epochs", "1", "--threads", "1", "--pictures", "1"]
@@ -122,7 +123,7 @@ def test_bad_input_messages(dataset, tmp_path):
     assert not (tmp_path / "r1").exists()
     r = run("train", dataset, "-o", tmp_path / "r2", *TINY, "--val-split", "validation")
     assert "no samples in split 'validation'" in one_line_error(r)
-    r = run("train", dataset, "-o", tmp_path / "r3", *TINY, "--crop", "100x100")
+    r = run("train", dataset, "-o", tmp_path / "r3", *TINY, "--crop-size", "100x100")
     assert "larger than" in one_line_error(r)
     r = run("train", dataset, "-o", tmp_path / "r4", "--resume")
     assert "nothing to resume" in one_line_error(r)
@@ -135,8 +136,10 @@ def test_bad_input_messages(dataset, tmp_path):
 
 
 def test_usage_errors(dataset, tmp_path):
-    r = run("train", dataset, "-o", tmp_path / "r", "--crop", "12by3")
-    assert r.exit_code == 2 and "HxW" in r.output
+    r = run("train", dataset, "-o", tmp_path / "r", "--crop-size", "12by3")
+    assert r.exit_code == 2 and "--crop-size" in r.output and "expected WxH" in r.output
+    r = run("train", dataset, "-o", tmp_path / "r", "--crop", "12by3")  # the old spelling
+    assert r.exit_code == 2 and "expected HxW" in r.output and "--crop-size takes WxH" in r.output
     r = run("train", dataset, "-o", tmp_path / "r", "--input", "depth")
     assert r.exit_code == 2
     r = run("eval", dataset)
@@ -157,3 +160,71 @@ def test_help_lists_examples():
     r = run("eval", "--help")
     assert r.exit_code == 0 and "--garg-crop" in r.output
     assert "--overwrite" in r.output and "--debug" in r.output
+
+
+# -- renamed options: the old spellings work for one release, with one warning ---------------------
+@pytest.fixture
+def configs(monkeypatch):
+    """The (TrainConfig, explicit fields) each `train` invocation asks for (nothing trained)."""
+    from sparsetools.train import loop
+    from sparsetools.train.epochs import TrainSummary
+
+    asked = []
+
+    def fake_train(config, *, resume=False, progress=False, explicit=None, on_epoch=None):
+        asked.append((config, explicit))
+        return TrainSummary(config.out_dir, config.input_mode, False, 0, 0, None, "rmse",
+                            float("inf"), None, 0.0, 1)  # fmt: skip
+
+    monkeypatch.setattr(loop, "train", fake_train)
+    return asked
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "field", "value"),
+    [
+        (["--workers", "2"], ["--loader-workers", "2"], "workers", 2),
+        (["--crop", "16x32"], ["--crop-size", "32x16"], "crop", (16, 32)),  # (H, W) inside
+    ],
+)
+def test_old_spellings_give_the_same_config_with_one_warning(
+    dataset, tmp_path, configs, old, new, field, value
+):
+    out = tmp_path / "run"
+    r_new = run("train", dataset, "-o", out, *new)
+    assert r_new.exit_code == 0, r_new.output
+    assert "deprecated" not in r_new.stderr
+    r_old = run("train", dataset, "-o", out, *old, *TINY)
+    assert r_old.exit_code == 0, r_old.output
+    (config_new, explicit_new), (config_old, explicit_old) = configs[0], configs[1]
+    assert getattr(config_new, field) == value
+    assert config_old == TrainConfig(**{**config_new.__dict__, "width": 4, "batch_size": 4,
+                                        "epochs": 1, "threads": 1, "pictures": 1})  # fmt: skip
+    assert field in explicit_new and field in explicit_old  # compared on --resume alike
+    warnings = [line for line in r_old.stderr.splitlines() if "deprecated" in line]
+    assert warnings == [
+        f"WARNING: deprecated: {old[0]} is now {new[0]} (the old spelling goes in 0.4)"
+    ]
+    # both spellings at once: a usage error, nothing run
+    r = run("train", dataset, "-o", out, *old, *new)
+    assert r.exit_code == 2 and f"{old[0]} is the old spelling of {new[0]}" in r.output
+    assert len(configs) == 2
+
+
+def test_crop_size_is_width_first(dataset, tmp_path):
+    # 24x40 (HxW) images: a 32x16 crop (W 32, H 16) fits, a 16x32 one (W 16, H 32) does not
+    r = run("train", dataset, "-o", tmp_path / "ok", *TINY, "--max-steps", "1", "--json",
+            "--crop-size", "32x16")  # fmt: skip
+    assert r.exit_code == 0, r.output
+    assert json.loads((tmp_path / "ok" / "config.json").read_text())["crop"] == [16, 32]
+    r = run("train", dataset, "-o", tmp_path / "no", *TINY, "--crop-size", "16x32")
+    assert "crop 16x32 (WxH) is larger than" in one_line_error(r)
+    # --resume compares a crop given by either spelling, and says it as --crop-size does
+    expected = "--crop-size: --resume continues the run's own settings: the crop is 32x16 (WxH)"
+    r = run("train", dataset, "-o", tmp_path / "ok", "--resume", "--crop-size", "40x24")
+    assert one_line_error(r) == f"Error: {expected} there, not 40x24 (WxH)"
+    r = run("train", dataset, "-o", tmp_path / "ok", "--resume", "--crop", "24x40")
+    assert r.exit_code == 1 and r.stderr.splitlines() == [
+        "WARNING: deprecated: --crop is now --crop-size (the old spelling goes in 0.4)",
+        f"Error: {expected} there, not 40x24 (WxH)",
+    ]

@@ -26,10 +26,11 @@ from sparsetools.errors import ParameterError  # noqa: E402
 from sparsetools.ops.metrics import METRIC_NAMES, depth_metrics  # noqa: E402
 from sparsetools.train.checkpoint import load_checkpoint, model_from_checkpoint  # noqa: E402
 from sparsetools.train.config import SelfSupSettings, TrainConfig  # noqa: E402
+from sparsetools.train.data import collate  # noqa: E402
 from sparsetools.train.evaluate import evaluate_checkpoint  # noqa: E402
 from sparsetools.train.loop import train  # noqa: E402
 from sparsetools.train.model import DepthCompletionUNet, build_model, model_inputs  # noqa: E402
-from sparsetools.train.selfsup.data import TripletDataset, collate_triplets  # noqa: E402
+from sparsetools.train.selfsup.data import TripletDataset  # noqa: E402
 from sparsetools.train.selfsup.pose_net import (  # noqa: E402
     PoseNet,
     build_pose_net,
@@ -326,7 +327,7 @@ def test_triplets_carry_all_three_sparse_maps_cropped_and_flipped(videos):
             m = m[:, ::-1] if flipped else m
             assert np.array_equal(b["sparse_frames"][k].numpy(), m), (i, k)
     assert 0 < flips < len(lidar)
-    out = collate_triplets([lidar[0], lidar[1]])
+    out = collate([lidar[0], lidar[1]])
     assert out["sparse_frames"].shape == (2, 3, 24, 40)
 
 

@@ -10,9 +10,9 @@ torch = pytest.importorskip("torch")
 from sparsetools.errors import FormatError, ParameterError  # noqa: E402
 from sparsetools.io.dataset_reader import DatasetReader  # noqa: E402
 from sparsetools.ops.enhance import apply_lut, mcie_lut  # noqa: E402
+from sparsetools.train.data import collate  # noqa: E402
 from sparsetools.train.selfsup.data import (  # noqa: E402
     TripletDataset,
-    collate_triplets,
     frame_poses,
     frame_triplets,
     natural_key,
@@ -109,7 +109,7 @@ def test_items_crop_and_intrinsics(tmp_path, frames):
         rtol=1e-6,
     )
     assert data.sample_id(0) == "a/000001"
-    batch = collate_triplets([data[0], data[1]])
+    batch = collate([data[0], data[1]])
     assert batch["frames"].shape == (2, 3, 3, 12, 20) and batch["index"].tolist() == [0, 1]
 
 

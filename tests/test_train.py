@@ -21,7 +21,7 @@ from sparsetools.train.data import (  # noqa: E402
     DepthDataset,
     augment_sample,
     bottom_centre_crop,
-    collate_samples,
+    collate,
 )
 from sparsetools.train.evaluate import (  # noqa: E402
     evaluate_checkpoint,
@@ -310,7 +310,7 @@ def test_mixed_sizes_need_a_crop(tmp_path):
     ds = make_dataset(
         tmp_path / "mixed", n_seq=3, frames=2, sizes={1: (20, 36)}, split={"train": 1.0}
     )
-    with pytest.raises(ParameterError, match="mixes image sizes"):
+    with pytest.raises(ParameterError, match=r"sizes \(36x20, 40x24, WxH\).* --crop-size WxH$"):
         train(config(ds, tmp_path / "run", val_split="train"))
     with pytest.raises(ParameterError, match="larger than"):
         train(config(ds, tmp_path / "run", val_split="train", crop=(24, 40)))
@@ -331,8 +331,10 @@ def test_mixed_sizes_need_a_crop(tmp_path):
             "index": 1,
         },
     ]
-    with pytest.raises(ParameterError, match="different sizes"):
-        collate_samples(items)
+    with pytest.raises(
+        ParameterError, match=r"different sizes .*\(5x4, 6x4, WxH\): use --crop-size"
+    ):
+        collate(items)
 
 
 def test_existing_run_and_resume_errors(dataset, tmp_path):
@@ -406,8 +408,44 @@ def test_bad_config():
 
 
 def test_diverged_loss_is_reported(dataset, tmp_path):
-    with pytest.raises(ParameterError, match="diverged"):
+    with pytest.raises(
+        ParameterError, match="^--lr: training diverged: the l1 loss is .* lower --lr$"
+    ):
         train(config(dataset, tmp_path / "run", lr=1e30, optimizer="sgd", epochs=3))
+
+
+def test_a_task_of_ones_own_runs_through_fit(dataset, tmp_path):
+    """The example of docs/train.md ("Your own training task"): fit drives any TrainingTask."""
+    from sparsetools.train.epochs import StepResult, TrainingTask, fit
+    from sparsetools.train.evaluate import batch_inputs, cap_depth
+    from sparsetools.train.loop import prepare_run
+    from sparsetools.train.supervised import SupervisedTask
+
+    class NearFirst(SupervisedTask):
+        """The L1 loss, with every pixel weighted by 10 m / max(gt, 10 m)."""
+
+        def step(self, batch, state):
+            rgb, sparse, extra = batch_inputs(batch, self.device)
+            gt = cap_depth(batch["gt"].to(self.device), self.config.max_depth)
+            pred = self.model.run(rgb, sparse, **extra)
+            valid = gt > 0
+            weight = 10.0 / gt.clamp(min=10.0)
+            loss = ((pred - gt).abs() * weight)[valid].mean()
+            return StepResult(loss, {"loss": float(loss.detach())}, len(rgb))
+
+    def run(out, **kw):
+        cfg, ckpt = prepare_run(config(dataset, out, **kw), resume=False, explicit=None)
+        task = NearFirst(cfg)
+        assert isinstance(task, TrainingTask)
+        return fit(task, cfg, ckpt=ckpt)
+
+    s = run(tmp_path / "near", epochs=1)
+    assert s.epochs_done == 1 and s.steps == 3 and s.best_metric == "rmse"
+    # another loss, another model; the rest of the run is the same
+    train(config(dataset, tmp_path / "l1", epochs=1))
+    near, l1 = read_rows(tmp_path / "near"), read_rows(tmp_path / "l1")
+    assert near[0].keys() == l1[0].keys() and near[0]["train_loss"] != l1[0]["train_loss"]
+    assert (tmp_path / "near" / "best.pt").is_file()
 
 
 # -- data and augmentation -----------------------------------------------------------------------------

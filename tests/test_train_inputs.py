@@ -24,7 +24,7 @@ from sparsetools.errors import ParameterError  # noqa: E402
 from sparsetools.io.image import write_depth_png, write_image  # noqa: E402
 from sparsetools.train.checkpoint import load_checkpoint, model_from_checkpoint  # noqa: E402
 from sparsetools.train.config import SelfSupSettings, TrainConfig  # noqa: E402
-from sparsetools.train.data import DepthDataset, augment_sample, collate_samples  # noqa: E402
+from sparsetools.train.data import DepthDataset, augment_sample, collate  # noqa: E402
 from test_real_trees import raw_root  # noqa: E402, F401  (the KITTI raw date folder fixture)
 
 TINY = ["--width", "4", "--epochs", "1", "--threads", "1", "--pictures", "1"]
@@ -204,7 +204,7 @@ def test_dataset_items_carry_the_confidence_only_for_rgbdc(conf_ds):
     assert item["confidence"].shape == (1, 16, 30) and item["confidence"].dtype == torch.float32
     expected = np.round(_position_code(24, 40) * 65535) / 65535  # as stored (uint16 PNG)
     np.testing.assert_allclose(item["confidence"][0].numpy(), expected[8:, 5:35], atol=1e-7)
-    batch = collate_samples([ds[0], ds[1]])
+    batch = collate([ds[0], ds[1]])
     assert batch["confidence"].shape == (2, 1, 16, 30)
 
 
@@ -290,7 +290,7 @@ def test_d_ignores_the_image_and_rgbdc_uses_the_confidence(conf_ds, tmp_path):
 
         train(cfg)
         model = model_from_checkpoint(load_checkpoint(run / "last.pt")).eval()
-        batch = collate_samples([DepthDataset(conf_ds, "val", input_mode="rgbdc")[0]])
+        batch = collate([DepthDataset(conf_ds, "val", input_mode="rgbdc")[0]])
         rgb, sparse, extra = batch_inputs(batch, torch.device("cpu"))
         with torch.no_grad():
             if mode == "d":
@@ -322,7 +322,7 @@ def _nuscenes_dataset(root: Path, out: Path, *extra) -> Path:
     return out
 
 
-ONE_STEP = [*TINY, "--batch-size", "1", "--max-steps", "1", "--crop", "64x128"]
+ONE_STEP = [*TINY, "--batch-size", "1", "--max-steps", "1", "--crop-size", "128x64"]
 
 
 @pytest.mark.real
@@ -372,7 +372,7 @@ def kitti_trees(raw_root, tmp_path_factory):  # noqa: F811
     return raw / trees.DATE, trees._dc_tree(root, sparse=b4, gt=full)
 
 
-KITTI_STEP = [*TINY, "--batch-size", "1", "--max-steps", "1", "--crop", "128x256"]
+KITTI_STEP = [*TINY, "--batch-size", "1", "--max-steps", "1", "--crop-size", "256x128"]
 
 
 @pytest.mark.real

@@ -30,6 +30,41 @@ def test_config_round_trip_with_and_without_selfsup():
     assert TrainConfig.from_dict({"dataset": "d", "out_dir": "o", "unknown": 1}).selfsup is None
 
 
+def test_config_checks_come_from_the_field_annotations():
+    from dataclasses import dataclass, fields
+
+    from sparsetools.train import config as cfg
+
+    # every field is checked, in field order (the first wrong one is the one named)
+    assert list(cfg._CONFIG_KINDS) == [f.name for f in fields(TrainConfig) if f.name != "selfsup"]
+    assert list(cfg._SELFSUP_KINDS) == [f.name for f in fields(SelfSupSettings)]
+    # the messages of 0.2.0's hand-written tables
+    for kw, message in (
+        ({"crop": [1, 2, 3]}, "crop must be null or two integers, got (1, 2, 3)"),
+        ({"max_steps": 2.5}, "max_steps must be an integer or null, got 2.5"),
+        ({"lr": "0.1"}, "lr must be a number, got '0.1'"),
+        ({"final_layer": 1}, "final_layer must be true or false, got 1"),
+        ({"scale_range": [1, "a"]}, "scale_range must be two numbers, got (1, 'a')"),
+    ):
+        with pytest.raises(ParameterError) as info:
+            TrainConfig.from_dict({"dataset": "d", "out_dir": "o", **kw})
+        # the error names the field's option (crop -> --crop-size)
+        assert info.value.message == message
+        assert info.value.param == cfg.option_of(next(iter(kw)))
+    with pytest.raises(ParameterError) as info:
+        SelfSupSettings.from_dict({"pose_width": "4"})
+    assert info.value.message == "pose_width must be an integer, got '4'"
+
+    @dataclass
+    class WithANewField:
+        size: int = 1
+        ratio: complex = 1j
+
+    # a field of a type nobody said how to check stops the import, not a run
+    with pytest.raises(TypeError, match=r"WithANewField.ratio: no check .*complex"):
+        cfg._field_kinds(WithANewField)
+
+
 def test_resume_rule():
     saved = TrainConfig(dataset="d", out_dir="o", lr=1e-3, epochs=2, selfsup=SelfSupSettings())
     # resumable fields come from the new configuration, everything else from the run

@@ -16,7 +16,7 @@ torch = pytest.importorskip("torch")
 from sparsetools.train import loop as train_loop  # noqa: E402
 from sparsetools.train.checkpoint import load_checkpoint  # noqa: E402
 from sparsetools.train.config import TrainConfig  # noqa: E402
-from sparsetools.train.data import DepthDataset, collate_samples  # noqa: E402
+from sparsetools.train.data import DepthDataset, collate  # noqa: E402
 from sparsetools.train.model import DepthCompletionUNet  # noqa: E402
 from sparsetools.train.runtime import torch_settings  # noqa: E402
 from test_train import make_dataset, read_rows  # noqa: E402
@@ -61,7 +61,7 @@ def plain_training(dataset, *, steps: int, batch_size: int = 4, lr: float = 3e-3
         losses, sizes = [], []
         model.train()
         for k in range(steps):
-            batch = collate_samples([data[i] for i in order[k * batch_size : (k + 1) * batch_size]])
+            batch = collate([data[i] for i in order[k * batch_size : (k + 1) * batch_size]])
             pred = model.run(batch["rgb"], batch["sparse"])
             gt = batch["gt"]
             valid = torch.isfinite(gt) & (gt > 0) & (gt < 80.0)

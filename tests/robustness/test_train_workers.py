@@ -30,10 +30,10 @@ def test_loader_workers_are_capped_with_one_warning(caplog, monkeypatch):
     assert usable_loader_workers(100000, 10) == 2
     assert usable_loader_workers(100000, 10) == 2  # every epoch builds a loader: one line
     assert [r.getMessage() for r in caplog.records] == [
-        "--workers 100000 capped to 2 (2 CPU(s) available)"
+        "--loader-workers 100000 capped to 2 (2 CPU(s) available)"
     ]
     assert usable_loader_workers(5, 1) == 1
-    assert caplog.records[-1].getMessage() == "--workers 5 capped to 1 (1 batch(es) to load)"
+    assert caplog.records[-1].getMessage() == "--loader-workers 5 capped to 1 (1 batch(es) to load)"
     loader = make_loader(list(range(7)), batch_size=4, order=None, workers=50, seed=0, collate=list)
     assert loader.num_workers == 2  # 2 batches, 2 CPUs
     assert [b for b in loader] == [[0, 1, 2, 3], [4, 5, 6]]
@@ -41,7 +41,7 @@ def test_loader_workers_are_capped_with_one_warning(caplog, monkeypatch):
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 def test_killing_a_training_run_leaves_no_loader_worker_alive(tmp_path):
-    """SIGKILL of a `train --workers 2` run: within 5 s none of its workers is alive."""
+    """SIGKILL of a `train --loader-workers 2` run: within 5 s none of its workers is alive."""
     ds = make_dataset(tmp_path / "d")
     proc = subprocess.Popen(
         [
@@ -59,7 +59,7 @@ def test_killing_a_training_run_leaves_no_loader_worker_alive(tmp_path):
             "2",
             "--epochs",
             "1000",
-            "--workers",
+            "--loader-workers",
             "2",
             "--threads",
             "1",

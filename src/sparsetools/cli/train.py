@@ -9,6 +9,7 @@ import click
 
 from .options import (
     batch_size_option,
+    deprecated,
     device_option,
     emit_summary,
     json_option,
@@ -18,6 +19,7 @@ from .options import (
     quiet_debug_options,
     root_flag,
     seed_option,
+    size_wxh,
 )
 
 #: ``--input`` choices (the channels of each: docs/train.md).
@@ -29,17 +31,14 @@ def progress_wanted() -> bool:
     return not root_flag("quiet") and sys.stderr.isatty()
 
 
-def crop_hxw(ctx, param, value):
-    """Parse ``HxW`` (e.g. 256x1216) into (H, W)."""
-    if value is None:
-        return None
-    try:
-        h, w = (int(v) for v in value.lower().split("x"))
-    except ValueError:
-        raise click.BadParameter(f"expected HxW such as 256x1216, got {value!r}") from None
-    if h <= 0 or w <= 0:
-        raise click.BadParameter(f"height and width must be positive, got {value!r}")
-    return h, w
+def hxw_as_wxh(text: str) -> str:
+    """The pre-0.3 ``train --crop HxW`` text as ``--crop-size WxH`` text (``96x320`` -> ``320x96``)."""
+    parts = str(text).lower().split("x")
+    if len(parts) != 2:
+        raise ValueError(
+            f"expected HxW such as 96x320, got {text!r}; the new --crop-size takes WxH (320x96)"
+        )
+    return f"{parts[1]}x{parts[0]}"
 
 
 # CLI parameter -> TrainConfig field
@@ -53,11 +52,11 @@ _FIELDS = {
     "lr_schedule": "lr_schedule",
     "lr_step": "lr_step",
     "lr_gamma": "lr_gamma",
-    "crop": "crop",
+    "crop_size": "crop",  # (W, H) on the command line, (H, W) in the configuration
     "seed": "seed",
     "width": "width",
     "final_layer": "final_layer",
-    "workers": "workers",
+    "loader_workers": "workers",
     "max_steps": "max_steps",
     "device": "device",
     "train_split": "train_split",
@@ -67,6 +66,9 @@ _FIELDS = {
     "threads": "threads",
     "lidar_encoder": "lidar_encoder",
 }
+
+# CLI parameter -> the parameter of its deprecated spelling (hidden, kept for one release)
+_OLD_SPELLINGS = {"crop_size": "crop", "loader_workers": "workers"}
 
 # CLI parameter -> SelfSupSettings field (only with --self-supervised)
 _SELFSUP_FIELDS = {
@@ -255,11 +257,13 @@ def selfsup_options(f):
     help="Decay factor of --lr-schedule step.",
 )
 @click.option(
-    "--crop",
-    callback=crop_hxw,
-    metavar="HxW",
-    help="Bottom-centre crop of training images (needed when sizes differ).",
+    "--crop-size",
+    callback=size_wxh,
+    metavar="WxH",
+    help="Bottom-centre crop of the training images to W x H pixels, e.g. 320x96 (needed "
+    "when sizes differ).",
 )
+@deprecated("--crop", "--crop-size", command="train", dest="crop_size", convert=hxw_as_wxh)
 @seed_option(help="Seed of the weights, sample order and augmentation.")
 @click.option(
     "--width",
@@ -284,12 +288,14 @@ def selfsup_options(f):
     help="Final 3x3 adjustment layer (UltraDepth).",
 )
 @click.option(
-    "--workers",
+    "--loader-workers",
     type=click.IntRange(min=0),
     default=0,
     show_default=True,
-    help="DataLoader worker processes (results do not depend on it).",
+    help="DataLoader worker processes that read and augment samples (0: in the training "
+    "process; results do not depend on it).",
 )
+@deprecated("--workers", "--loader-workers", command="train", dest="loader_workers")
 @click.option(
     "--resume", is_flag=True, help="Continue the run in RUN_DIR exactly where it stopped."
 )
@@ -346,7 +352,7 @@ def train(ctx, dataset, out_dir, resume, as_json, self_supervised, **options):
     \b
     Examples:
       sparsetools train out/ds -o out/run_rgbd --input rgbd --epochs 20
-      sparsetools train out/ds -o out/run_rgb --input rgb --width 16 --crop 96x320
+      sparsetools train out/ds -o out/run_rgb --input rgb --width 16 --crop-size 320x96
       sparsetools train out/ds -o out/run_rgbd --resume --epochs 30
       sparsetools train out/ds -o out/run_ss --self-supervised --input rgb --width 8
       sparsetools train out/ds -o out/run_ss4 --self-supervised --sparse-loss silog
@@ -356,6 +362,8 @@ def train(ctx, dataset, out_dir, resume, as_json, self_supervised, **options):
       sparsetools train out/nus_jbf -o out/run_jbf --input rgbdc
       sparsetools eval --checkpoint out/run_rgbd/best.pt out/ds --split test
     """
+    from click.core import ParameterSource
+
     from ..train._torch_required import require_torch
 
     require_torch("train")
@@ -363,7 +371,11 @@ def train(ctx, dataset, out_dir, resume, as_json, self_supervised, **options):
     from ..train.loop import train as run_training
 
     def given(name):
-        return ctx.get_parameter_source(name) is not click.core.ParameterSource.DEFAULT
+        # an option given by its deprecated spelling counts as given too
+        names = (name, _OLD_SPELLINGS[name]) if name in _OLD_SPELLINGS else (name,)
+        return any(
+            ctx.get_parameter_source(n) not in (None, ParameterSource.DEFAULT) for n in names
+        )
 
     selfsup_values = {_SELFSUP_FIELDS[k]: options.pop(k) for k in list(_SELFSUP_FIELDS)}
     set_selfsup = [k for k in _SELFSUP_FIELDS if given(k)]
@@ -373,6 +385,9 @@ def train(ctx, dataset, out_dir, resume, as_json, self_supervised, **options):
             f"{option} is an option of self-supervised training: add --self-supervised"
         )
 
+    if options["crop_size"] is not None:
+        width, height = options["crop_size"]
+        options["crop_size"] = (height, width)
     if options["lidar_encoder"] != "none" and not given("input_mode"):
         options["input_mode"] = "rgb"  # EffisDepth: the sparse depth goes to its own branch
     explicit = {_FIELDS[name] for name in _FIELDS if given(name)}

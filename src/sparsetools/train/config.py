@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import typing
 from dataclasses import asdict, dataclass, fields, replace
 
 from ..errors import ParameterError
@@ -32,11 +33,13 @@ from .runtime import resolve_device
 __all__ = [
     "CAMERA_FREE_MODES",
     "CONFIDENCE_MODES",
+    "FIELD_OPTIONS",
     "MAX_WIDTH",
     "SPARSE_LOSSES",
     "SelfSupSettings",
     "TrainConfig",
     "epoch_lr",
+    "option_of",
     "resumed_config",
 ]
 
@@ -53,6 +56,17 @@ CAMERA_FREE_MODES = ("d",)
 MAX_WIDTH = 256
 
 
+#: The command-line option of each field whose option is spelt otherwise (0.3 renamed the
+#: options; the fields keep their 0.2.0 names so that the runs of 0.2.0 resume).
+FIELD_OPTIONS = {"crop": "--crop-size", "workers": "--loader-workers"}
+
+
+def option_of(name: str) -> str:
+    """The parameter name errors about field ``name`` carry: its option where it is spelt
+    otherwise (``crop`` -> ``--crop-size``), else the field name (``max_depth``)."""
+    return FIELD_OPTIONS.get(name, name)
+
+
 def _short(value) -> str:
     text = repr(value)
     return text if len(text) <= 40 else text[:37] + "..."
@@ -66,88 +80,62 @@ def _is_real(value) -> bool:
     return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
-#: What each kind of field accepts (JSON / checkpoint values are checked against these).
+def _is_pair(check):
+    return lambda v: isinstance(v, (list, tuple)) and len(v) == 2 and all(map(check, v))
+
+
+#: What a field of each annotated type accepts (JSON / checkpoint values are checked against
+#: these), and how the error message says it. A field of a type missing here is refused when
+#: this module is imported (:func:`_field_kinds`): a new field cannot go unchecked.
 _KINDS = {
-    "str": (lambda v: isinstance(v, str), "a string"),
-    "int": (_is_int, "an integer"),
-    "int?": (lambda v: v is None or _is_int(v), "an integer or null"),
-    "real": (_is_real, "a number"),
-    "bool": (lambda v: isinstance(v, bool), "true or false"),
-    "int2?": (
-        lambda v: (
-            v is None or (isinstance(v, (list, tuple)) and len(v) == 2 and all(map(_is_int, v)))
-        ),
-        "null or two integers",
-    ),
-    "real2": (
-        lambda v: isinstance(v, (list, tuple)) and len(v) == 2 and all(map(_is_real, v)),
-        "two numbers",
-    ),
+    str: (lambda v: isinstance(v, str), "a string"),
+    int: (_is_int, "an integer"),
+    int | None: (lambda v: v is None or _is_int(v), "an integer or null"),
+    float: (_is_real, "a number"),
+    bool: (lambda v: isinstance(v, bool), "true or false"),
+    tuple[int, int] | None: (lambda v: v is None or _is_pair(_is_int)(v), "null or two integers"),
+    tuple[float, float]: (_is_pair(_is_real), "two numbers"),
 }
 
 
-def _check_types(obj, kinds: dict[str, str]) -> None:
+def _field_kinds(cls, *, skip: tuple[str, ...] = ()) -> dict[str, tuple]:
+    """Field name -> (accepts, wanted) of every dataclass field of ``cls`` but ``skip``, from
+    its annotation (:data:`_KINDS`).
+
+    Raises
+    ------
+    TypeError
+        A field whose annotated type has no entry in :data:`_KINDS`.
+    """
+    hints = typing.get_type_hints(cls)
+    kinds = {}
+    for f in fields(cls):
+        if f.name in skip:
+            continue
+        kind = _KINDS.get(hints[f.name])
+        if kind is None:
+            raise TypeError(
+                f"{cls.__name__}.{f.name}: no check for values of type {hints[f.name]} "
+                "(add it to sparsetools.train.config._KINDS)"
+            )
+        kinds[f.name] = kind
+    return kinds
+
+
+def _check_types(obj, kinds: dict[str, tuple]) -> None:
     """Raise :class:`ParameterError` naming the first field of ``obj`` of the wrong type."""
-    for name, kind in kinds.items():
+    for name, (accepts, wanted) in kinds.items():
         value = getattr(obj, name)
-        accepts, wanted = _KINDS[kind]
         if not accepts(value):
-            raise ParameterError(f"{name} must be {wanted}, got {_short(value)}", param=name)
+            raise ParameterError(
+                f"{name} must be {wanted}, got {_short(value)}", param=option_of(name)
+            )
 
 
 def _mapping(d, what: str) -> dict:
     if not isinstance(d, dict):
         raise ParameterError(f"{what} must be a mapping, got {type(d).__name__}")
     return d
-
-
-#: The kind of every field of :class:`SelfSupSettings` (see :func:`_check_types`).
-_SELFSUP_KINDS = {
-    "sparse_loss": "str",
-    "sparse_weight": "real",
-    "silog_lambda": "real",
-    "smoothness": "real",
-    "scales": "int",
-    "depth_range": "real2",
-    "auto_mask": "bool",
-    "mcie": "bool",
-    "mcie_clip": "real",
-    "sbm": "bool",
-    "sbm_beta": "real",
-    "sbm_percentile": "real",
-    "pose_width": "int",
-    "pose_lidar_encoder": "str",
-}
-
-#: The kind of every field of :class:`TrainConfig` but ``selfsup``.
-_CONFIG_KINDS = {
-    "dataset": "str",
-    "out_dir": "str",
-    "input_mode": "str",
-    "loss": "str",
-    "epochs": "int",
-    "batch_size": "int",
-    "lr": "real",
-    "optimizer": "str",
-    "lr_schedule": "str",
-    "lr_step": "int",
-    "lr_gamma": "real",
-    "crop": "int2?",
-    "seed": "int",
-    "width": "int",
-    "final_layer": "bool",
-    "workers": "int",
-    "max_steps": "int?",
-    "device": "str",
-    "train_split": "str",
-    "val_split": "str",
-    "max_depth": "real",
-    "pictures": "int",
-    "threads": "int?",
-    "scale_range": "real2",
-    "jitter": "real",
-    "lidar_encoder": "str",
-}
 
 
 @dataclass(frozen=True)
@@ -282,6 +270,10 @@ class SelfSupSettings:
     def metric_scale(self) -> bool:
         """True when the sparse loss fixes the scale (no median scaling in evaluation)."""
         return self.sparse_loss != "none"
+
+
+#: The check of every field of :class:`SelfSupSettings` (see :func:`_check_types`).
+_SELFSUP_KINDS = _field_kinds(SelfSupSettings)
 
 
 @dataclass
@@ -422,7 +414,9 @@ class TrainConfig:
         if self.max_steps is not None and self.max_steps < 1:
             raise ParameterError(f"max_steps must be >= 1, got {self.max_steps}", param="max_steps")
         if self.workers < 0:
-            raise ParameterError(f"workers must be >= 0, got {self.workers}", param="workers")
+            raise ParameterError(
+                f"workers must be >= 0, got {self.workers}", param=option_of("workers")
+            )
         if not (self.max_depth > 0 and math.isfinite(self.max_depth)):
             raise ParameterError(
                 f"max_depth must be positive, got {self.max_depth}", param="max_depth"
@@ -431,7 +425,7 @@ class TrainConfig:
             raise ParameterError(f"pictures must be >= 0, got {self.pictures}", param="pictures")
         if self.crop is not None and (len(self.crop) != 2 or min(self.crop) < 1):
             raise ParameterError(
-                f"crop must be two positive sizes (H, W), got {self.crop}", param="crop"
+                f"crop must be two positive sizes (H, W), got {self.crop}", param=option_of("crop")
             )
         if self.lidar_encoder not in LIDAR_ENCODERS:
             raise ParameterError(
@@ -477,6 +471,10 @@ class TrainConfig:
                 )
 
 
+#: The check of every field of :class:`TrainConfig` but ``selfsup`` (checked as settings).
+_CONFIG_KINDS = _field_kinds(TrainConfig, skip=("selfsup",))
+
+
 def _flat(config: TrainConfig) -> dict:
     """The configuration with the self-supervised settings as ``selfsup.NAME`` entries."""
     d = config.to_dict()
@@ -485,6 +483,11 @@ def _flat(config: TrainConfig) -> dict:
     for k, v in (nested or {}).items():
         d[f"selfsup.{k}"] = v
     return d
+
+
+def _crop_text(crop) -> str:
+    """A configuration's crop ``[H, W]`` as ``--crop-size`` text (``WxH``), or ``none``."""
+    return "none" if crop is None else f"{crop[1]}x{crop[0]} (WxH)"
 
 
 def resumed_config(
@@ -530,10 +533,17 @@ def resumed_config(
                     "the kind of training",
                     param="self_supervised",
                 )
+            if name == "crop":  # as --crop-size writes it
+                theirs_text, mine_text = _crop_text(theirs[name]), _crop_text(mine.get(name))
+                raise ParameterError(
+                    f"--resume continues the run's own settings: the crop is {theirs_text} "
+                    f"there, not {mine_text}",
+                    param=option_of(name),
+                )
             raise ParameterError(
                 f"--resume continues the run's own settings: {name} is {theirs[name]!r} "
                 f"there, not {mine.get(name)!r}",
-                param=name.split(".")[-1],
+                param=option_of(name.split(".")[-1]),
             )
     return replace(
         saved,

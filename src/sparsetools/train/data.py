@@ -27,7 +27,8 @@ __all__ = [
     "augment_sample",
     "bottom_centre_crop",
     "check_confidence",
-    "collate_samples",
+    "check_crop",
+    "collate",
     "colour_jitter",
     "open_split",
 ]
@@ -104,6 +105,30 @@ def check_confidence(reader, *, split: str, input_mode: str) -> None:
         )
 
 
+def check_crop(crop: tuple[int, int] | None, sizes, split: str) -> None:
+    """Refuse a crop ``(height, width)`` that is not positive or is larger than some of the
+    images' ``sizes`` ((height, width) pairs) of ``split``; None passes.
+
+    Raises
+    ------
+    ParameterError
+        Naming ``--crop-size`` and the sizes as ``WxH``.
+    """
+    if crop is None:
+        return
+    ch, cw = crop
+    if ch <= 0 or cw <= 0:
+        raise ParameterError(f"crop must be positive, got {cw}x{ch} (WxH)", param="--crop-size")
+    small = [(h, w) for h, w in sizes if h < ch or w < cw]
+    if small:
+        h, w = small[0]
+        raise ParameterError(
+            f"crop {cw}x{ch} (WxH) is larger than {len(small)} image(s) of split '{split}' "
+            f"(e.g. {w}x{h})",
+            param="--crop-size",
+        )
+
+
 def bottom_centre_crop(array: np.ndarray, height: int, width: int) -> np.ndarray:
     """The bottom ``height`` rows and the central ``width`` columns of an (H, W, ...) array.
 
@@ -112,7 +137,9 @@ def bottom_centre_crop(array: np.ndarray, height: int, width: int) -> np.ndarray
     """
     h, w = array.shape[:2]
     if height > h or width > w:
-        raise ParameterError(f"crop {height}x{width} (HxW) is larger than the {h}x{w} image")
+        raise ParameterError(
+            f"crop {width}x{height} (WxH) is larger than the {w}x{h} image", param="--crop-size"
+        )
     left = (w - width) // 2
     return array[h - height :, left : left + width]
 
@@ -272,18 +299,7 @@ class DepthDataset(Dataset):
             raise ParameterError(f"scale range must satisfy 0 < low <= high, got {scale_range}")
         if self.scale_range != (1.0, 1.0) and (crop is None or self.scale_range[0] < 1.0):
             raise ParameterError("scale augmentation needs a crop and scales >= 1")
-        sizes = self.sizes()
-        if self.crop is not None:
-            ch, cw = self.crop
-            if ch <= 0 or cw <= 0:
-                raise ParameterError(f"crop must be positive, got {ch}x{cw}")
-            small = [(h, w) for h, w in sizes if h < ch or w < cw]
-            if small:
-                h, w = small[0]
-                raise ParameterError(
-                    f"crop {ch}x{cw} (HxW) is larger than {len(small)} image(s) of split "
-                    f"'{split}' (e.g. {h}x{w})"
-                )
+        check_crop(self.crop, self.sizes(), split)
 
     def __len__(self) -> int:
         return len(self.reader)
@@ -349,21 +365,30 @@ class DepthDataset(Dataset):
         return item
 
 
-def collate_samples(items: list[dict]) -> dict:
-    """Stack samples into a batch; refuse samples of different sizes with a clear message."""
-    sizes = {tuple(it["rgb"].shape[-2:]) for it in items}
-    if len(sizes) > 1:
-        listed = ", ".join(f"{h}x{w}" for h, w in sorted(sizes))
-        raise ParameterError(
-            f"images of different sizes in one batch ({listed}, HxW): use --crop HxW "
-            "or a dataset with one image size"
-        )
-    batch = {
-        "rgb": torch.stack([it["rgb"] for it in items]),
-        "sparse": torch.stack([it["sparse"] for it in items]),
-        "gt": torch.stack([it["gt"] for it in items]),
-        "index": torch.tensor([it["index"] for it in items], dtype=torch.long),
-    }
-    if "confidence" in items[0]:
-        batch["confidence"] = torch.stack([it["confidence"] for it in items])
+def collate(items: list[dict]) -> dict:
+    """Stack the items of a dataset (:class:`DepthDataset`, the triplets of
+    :class:`~sparsetools.train.selfsup.data.TripletDataset`) into a batch.
+
+    Every tensor entry is stacked along a new first axis and every integer entry (``index``)
+    becomes a (B,) int64 tensor; the keys are those of the first item.
+
+    Raises
+    ------
+    ParameterError
+        Items of different image sizes (a tensor entry whose shapes differ).
+    """
+    batch = {}
+    for key, first in items[0].items():
+        if not isinstance(first, torch.Tensor):
+            batch[key] = torch.tensor([it[key] for it in items], dtype=torch.long)
+            continue
+        if any(it[key].shape != first.shape for it in items):
+            sizes = sorted({tuple(it[key].shape[-2:]) for it in items})
+            listed = ", ".join(f"{w}x{h}" for h, w in sizes)
+            raise ParameterError(
+                f"images of different sizes in one batch ({listed}, WxH): use --crop-size WxH "
+                "or a dataset with one image size",
+                param="--crop-size",
+            )
+        batch[key] = torch.stack([it[key] for it in items])
     return batch

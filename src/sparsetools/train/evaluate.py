@@ -29,7 +29,7 @@ import torch
 
 from ..ops.metrics import aggregate_metrics, depth_metrics
 from .checkpoint import load_checkpoint, model_from_checkpoint
-from .data import DepthDataset, collate_samples
+from .data import DepthDataset, collate
 from .losses import depth_loss
 from .model import DepthCompletionUNet
 from .results import EvalResult, evaluate_folders, format_eval_text, write_eval_results
@@ -42,9 +42,11 @@ __all__ = [
     "cap_depth",
     "evaluate_checkpoint",
     "evaluate_folders",
+    "evaluation_loader",
     "format_eval_text",
     "picture_indices",
     "run_evaluation",
+    "score_batch",
     "write_eval_results",
 ]
 
@@ -79,6 +81,18 @@ def eval_batch_size(sizes: set[tuple[int, int]], batch_size: int) -> int:
     return batch_size if len(sizes) == 1 else 1
 
 
+def evaluation_loader(dataset, *, batch_size: int, workers: int):
+    """A loader over every sample of ``dataset`` in order (one by one when sizes differ)."""
+    return make_loader(
+        dataset,
+        batch_size=eval_batch_size(dataset.output_sizes(), batch_size),
+        order=None,
+        workers=workers,
+        seed=0,
+        collate=collate,
+    )
+
+
 def rgb_uint8(rgb: torch.Tensor) -> np.ndarray:
     """(3, H, W) float 0..1 tensor -> (H, W, 3) uint8."""
     return np.clip(rgb.permute(1, 2, 0).numpy() * 255 + 0.5, 0, 255).astype(np.uint8)
@@ -94,6 +108,50 @@ def batch_inputs(batch: dict, device: torch.device) -> tuple[torch.Tensor, torch
     rgb, sparse = batch["rgb"].to(device), batch["sparse"].to(device)
     extra = {"confidence": batch["confidence"].to(device)} if "confidence" in batch else {}
     return rgb, sparse, extra
+
+
+def score_batch(
+    depth: torch.Tensor,
+    batch: dict,
+    images: torch.Tensor,
+    dataset,
+    *,
+    metric_kw: dict,
+    pictures: tuple[int, ...] = (),
+) -> tuple[list[dict], list[tuple]]:
+    """Per-image metrics of a batch's predicted ``depth`` and the picture rows it gives.
+
+    Parameters
+    ----------
+    depth : (B, 1, H, W) float, metres
+        The predictions for ``batch`` (``gt``, ``sparse`` (B, 1, H, W), ``index`` (B,)).
+    images : (B, 3, H, W) float, 0..1
+        The camera images shown in the pictures.
+    dataset
+        Names the samples (``sample_id``).
+    metric_kw : dict
+        Keyword arguments of :func:`~sparsetools.ops.metrics.depth_metrics`.
+    pictures : tuple of int
+        Sample indices to draw (median-scaled like their metrics).
+
+    Returns
+    -------
+    rows : list of dict
+        ``{"id": ..., **metrics}`` per sample.
+    pictures : list of tuple
+        (rgb uint8, sparse, prediction, gt) of the samples in ``pictures``.
+    """
+    pred_np = depth[:, 0].float().cpu().numpy()
+    gt_np = batch["gt"][:, 0].numpy()
+    rows, pics = [], []
+    for k, idx in enumerate(batch["index"].tolist()):
+        m = depth_metrics(pred_np[k], gt_np[k], **metric_kw)
+        rows.append({"id": dataset.sample_id(idx), **m})
+        if idx in pictures:
+            scale = m.get("scale", 1.0)
+            shown = pred_np[k] * (scale if math.isfinite(scale) else 1.0)
+            pics.append((rgb_uint8(images[k]), batch["sparse"][k, 0].numpy(), shown, gt_np[k]))
+    return rows, pics
 
 
 @torch.no_grad()
@@ -124,14 +182,7 @@ def run_evaluation(
     model.eval()
     per_image, pics = [], []
     loss_sum, n_loss = 0.0, 0
-    loader = make_loader(
-        dataset,
-        batch_size=eval_batch_size(dataset.output_sizes(), batch_size),
-        order=None,
-        workers=workers,
-        seed=0,
-        collate=collate_samples,
-    )
+    loader = evaluation_loader(dataset, batch_size=batch_size, workers=workers)
     with progress_bar(len(loader), desc, progress) as bar:
         for batch in batches(loader):
             rgb, sparse, extra = batch_inputs(batch, device)
@@ -141,17 +192,11 @@ def run_evaluation(
             if loss is not None:
                 loss_sum += float(depth_loss(loss, pred, cap_depth(gt, max_depth))) * n
                 n_loss += n
-            pred_np = pred[:, 0].float().cpu().numpy()
-            gt_np = batch["gt"][:, 0].numpy()
-            for k, idx in enumerate(batch["index"].tolist()):
-                m = depth_metrics(pred_np[k], gt_np[k], **metric_kw)
-                per_image.append({"id": dataset.sample_id(idx), **m})
-                if idx in picture_indices:
-                    scale = m.get("scale", 1.0)
-                    shown = pred_np[k] * (scale if math.isfinite(scale) else 1.0)
-                    pics.append(
-                        (rgb_uint8(batch["rgb"][k]), batch["sparse"][k, 0].numpy(), shown, gt_np[k])
-                    )
+            rows, shown = score_batch(
+                pred, batch, batch["rgb"], dataset, metric_kw=metric_kw, pictures=picture_indices
+            )
+            per_image += rows
+            pics += shown
             bar.update(1)
     return EvaluationPass(per_image, (loss_sum / n_loss if n_loss else math.nan), pics)
 

@@ -271,7 +271,7 @@ def usable_loader_workers(workers: int, n_batches: int) -> int:
             if capped == cores and cores <= n_batches
             else f"{max(int(n_batches), 1)} batch(es) to load"
         )
-        log.warning("--workers %d capped to %d (%s)", workers, capped, why)
+        log.warning("--loader-workers %d capped to %d (%s)", workers, capped, why)
     return capped
 
 

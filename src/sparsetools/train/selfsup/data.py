@@ -36,12 +36,11 @@ import torch
 from torch.utils.data import Dataset
 
 from ...errors import FormatError, ParameterError
-from ..data import bottom_centre_crop, colour_jitter, open_split
+from ..data import bottom_centre_crop, check_crop, colour_jitter, open_split
 
 __all__ = [
     "Triplet",
     "TripletDataset",
-    "collate_triplets",
     "frame_poses",
     "frame_sparse",
     "frame_triplets",
@@ -246,15 +245,7 @@ class TripletDataset(Dataset):
                 raise FormatError(
                     f"frames around '{rows[t.target]['id']}' differ in size: one camera per sequence"
                 )
-        if self.crop is not None:
-            ch, cw = self.crop
-            small = [(h, w) for h, w in self.sizes() if h < ch or w < cw]
-            if small:
-                raise ParameterError(
-                    f"crop {ch}x{cw} (HxW) is larger than {len(small)} image(s) of split "
-                    f"'{split}' (e.g. {small[0][0]}x{small[0][1]})",
-                    param="crop",
-                )
+        check_crop(self.crop, self.sizes(), split)
 
     def __len__(self) -> int:
         return len(self.triplets)
@@ -346,21 +337,3 @@ class TripletDataset(Dataset):
                 np.ascontiguousarray(np.stack(lidar), dtype=np.float32)
             )
         return item
-
-
-def collate_triplets(items: list[dict]) -> dict:
-    """Stack triplets into a batch; refuse triplets of different sizes with a clear message."""
-    sizes = {tuple(it["frames"].shape[-2:]) for it in items}
-    if len(sizes) > 1:
-        listed = ", ".join(f"{h}x{w}" for h, w in sorted(sizes))
-        raise ParameterError(
-            f"images of different sizes in one batch ({listed}, HxW): use --crop HxW "
-            "or a dataset with one image size",
-            param="crop",
-        )
-    keys = ["frames", "inputs", "sparse", "gt", "K"]
-    if "sparse_frames" in items[0]:
-        keys.append("sparse_frames")
-    out = {k: torch.stack([it[k] for it in items]) for k in keys}
-    out["index"] = torch.tensor([it["index"] for it in items], dtype=torch.long)
-    return out

@@ -38,6 +38,9 @@ __all__ = [
 
 #: Points closer than this to the source camera plane (metres) are "behind" it.
 MIN_SOURCE_DEPTH = 1e-3
+#: A projection within this many machine epsilons times the image size (pixels) of the
+#: border counts as inside: 1e-3 px for float32 at 1242 pixels, 2e-12 px in float64.
+BORDER_ULPS = 8
 
 
 def _skew(v: torch.Tensor) -> torch.Tensor:
@@ -213,7 +216,8 @@ class Warp(NamedTuple):
 
     image : (B, C, H, W) the source sampled at the target pixels' projections
     in_front : (B, 1, H, W) bool, the point projects in front of the source camera
-    inside : (B, 1, H, W) bool, and inside the source image (within its pixel centres)
+    inside : (B, 1, H, W) bool, and inside the source image (within its pixel centres, to
+        rounding: :data:`BORDER_ULPS`)
     """
 
     image: torch.Tensor
@@ -253,7 +257,11 @@ def warp_frame(
     uv, z = project(backproject(depth, K), K, T_t_to_s)
     u, v = uv[:, 0], uv[:, 1]
     in_front = (z[:, 0] > MIN_SOURCE_DEPTH).reshape(b, 1, h, w)
-    inside = in_front & ((u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)).reshape(b, 1, h, w)
+    # a border pixel's projection lands a rounding error outside (v = -1e-16 for the identity
+    # in float64): within the round-off of K^-1 then K at this image size it is inside
+    tol = BORDER_ULPS * torch.finfo(uv.dtype).eps * max(h, w)
+    within = (u >= -tol) & (u <= w - 1 + tol) & (v >= -tol) & (v <= h - 1 + tol)
+    inside = in_front & within.reshape(b, 1, h, w)
     grid = torch.stack([2 * u / (w - 1) - 1, 2 * v / (h - 1) - 1], dim=-1).reshape(b, h, w, 2)
     # points behind the camera would sample at arbitrary (possibly huge) coordinates
     grid = torch.where(in_front.reshape(b, h, w, 1), grid, torch.zeros_like(grid))

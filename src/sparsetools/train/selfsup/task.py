@@ -1,0 +1,269 @@
+"""Self-supervised training of depth and pose networks from frame triplets, as a
+:class:`~sparsetools.train.epochs.TrainingTask`.
+
+Same run folder, checkpoints, determinism and exact ``--resume`` as supervised training (the
+epochs are :func:`sparsetools.train.epochs.fit`'s): one Adam (or SGD) optimizer over both
+networks, the weights from ``torch.manual_seed(seed)`` (depth network first, then the pose
+network; their LiDAR branches, ``--lidar-encoder`` and ``--pose-lidar-encoder``, from streams
+of their own, so the image networks start alike whatever the branches;
+:func:`sparsetools.train.model.build_lidar_encoder`; a pose branch also makes the triplets
+carry all three frames' sparse depth), the sample order of epoch e from ``(seed, e)``, each
+triplet's augmentation from ``(seed, e, index)``, and the auto-mask's tie-breaking noise of
+step k from ``(seed, k)``; the SBM threshold is saved with the checkpoint. Validation after
+every epoch reports the validation loss, the photometric error and, when every validation
+frame has ground truth, the depth metrics -- per-image median-scaled for camera-only models,
+unscaled with the sparse loss. ``best.pt`` is the epoch with the lowest validation RMSE (with
+ground truth), else the lowest photometric error.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from ...errors import ParameterError
+from ...ops.metrics import METRIC_NAMES, aggregate_metrics
+from ..checkpoint import Checkpoint, TrainingState, load_weights
+from ..config import TrainConfig
+from ..epochs import StepResult, Validation, single_size
+from ..evaluate import (
+    EvaluationPass,
+    cap_depth,
+    evaluation_loader,
+    picture_indices,
+    score_batch,
+)
+from ..model import DepthCompletionUNet, disparity_to_depth
+from ..runtime import batches, progress_bar
+from .data import TripletDataset
+from .losses import selfsup_loss
+from .masks import StatisticsMask
+from .pose_net import PoseNet, source_transforms
+
+__all__ = ["SelfSupervisedTask", "noise_generator", "validate_selfsup"]
+
+
+#: Initial depth of every pixel in runs with the sparse loss (metres).
+METRIC_INITIAL_DEPTH = 10.0
+#: ``noise_generator`` stream of validation (training steps are 0, 1, 2, ...).
+VALIDATION_STREAM = 2**31
+
+
+def noise_generator(seed: int, step: int) -> torch.Generator:
+    """The generator of the auto-mask noise of optimizer step ``step`` (CPU)."""
+    state = np.random.SeedSequence([int(seed) % 2**32, 104729, int(step)]).generate_state(1)[0]
+    return torch.Generator().manual_seed(int(state))
+
+
+def _split_has_gt(dataset: TripletDataset) -> bool:
+    return all(dataset.reader.row(t.target)["gt_path"] is not None for t in dataset.triplets)
+
+
+def _forward(depth_net, pose_net, batch, device):
+    inputs = batch["inputs"].to(device)
+    sparse = batch["sparse"].to(device)
+    disparities = depth_net.run(inputs[:, 1], sparse)
+    lidar = batch["sparse_frames"].to(device) if pose_net.uses_lidar else None
+    transforms = source_transforms(pose_net, inputs[:, 0], inputs[:, 1], inputs[:, 2], lidar=lidar)
+    return disparities, transforms, sparse
+
+
+@torch.no_grad()
+def validate_selfsup(
+    depth_net: DepthCompletionUNet,
+    pose_net: PoseNet,
+    dataset: TripletDataset,
+    config: TrainConfig,
+    *,
+    device: torch.device,
+    sbm: StatisticsMask | None,
+    with_metrics: bool,
+    pictures: tuple[int, ...] = (),
+    progress: bool = False,
+) -> tuple[EvaluationPass, float]:
+    """Validation loss, per-image metrics and pictures, and the mean photometric loss.
+
+    The SBM threshold is used but not updated; the auto-mask noise comes from a fixed seed, so
+    validation is the same function of the weights at every epoch.
+    """
+    settings = config.selfsup
+    depth_net.eval()
+    pose_net.eval()
+    loader = evaluation_loader(dataset, batch_size=config.batch_size, workers=config.workers)
+    generator = noise_generator(config.seed, VALIDATION_STREAM)
+    metric_kw = {"max_depth": config.max_depth, "median_scaling": not settings.metric_scale}
+    per_image, pics = [], []
+    loss_sum, pe_sum, n = 0.0, 0.0, 0
+    with progress_bar(len(loader), "validation", progress) as bar:
+        for batch in batches(loader):
+            disparities, transforms, sparse = _forward(depth_net, pose_net, batch, device)
+            terms = selfsup_loss(
+                disparities,
+                batch["frames"].to(device),
+                batch["K"].to(device),
+                transforms,
+                settings,
+                sparse=cap_depth(sparse, config.max_depth),
+                sbm=sbm,
+                generator=generator,
+            )
+            b = len(batch["index"])
+            loss_sum += float(terms.total) * b
+            pe_sum += terms.photometric * b
+            n += b
+            if with_metrics:
+                depth = disparity_to_depth(disparities[0], *settings.depth_range)
+                rows, shown = score_batch(
+                    depth,
+                    batch,
+                    batch["inputs"][:, 1],
+                    dataset,
+                    metric_kw=metric_kw,
+                    pictures=pictures,
+                )
+                per_image += rows
+                pics += shown
+            bar.update(1)
+    return EvaluationPass(per_image, loss_sum / max(n, 1), pics), pe_sum / max(n, 1)
+
+
+def _check_scales(config: TrainConfig, train_set: TripletDataset) -> None:
+    h, w = single_size(config, train_set)
+    coarsest = 2 ** (config.selfsup.scales - 1)
+    if math.ceil(min(h, w) / coarsest) < 2:
+        raise ParameterError(
+            f"{w}x{h} images are too small for {config.selfsup.scales} scales (the coarsest "
+            "disparity needs 2x2 pixels): use larger images or fewer --scales",
+            param="scales",
+        )
+
+
+class SelfSupervisedTask:
+    """Depth and pose from frame triplets (:class:`~sparsetools.train.epochs.TrainingTask`).
+
+    Parameters
+    ----------
+    config : TrainConfig
+        Checked, with ``selfsup`` set.
+
+    Raises
+    ------
+    ParameterError, FormatError
+        A missing split, one without triplets or intrinsics, mixed image sizes, images too
+        small for the scales (:class:`~sparsetools.train.selfsup.data.TripletDataset`).
+    """
+
+    self_supervised = True
+    loss_name = "self-supervised"
+
+    def __init__(self, config: TrainConfig):
+        settings = config.selfsup
+        self.config = config
+        self.progress_terms = {"loss": "loss", "pe": "photometric"}
+        common = dict(
+            crop=config.crop,
+            seed=config.seed,
+            mcie=settings.mcie,
+            mcie_clip=settings.mcie_clip,
+            sparse_frames=settings.pose_lidar_encoder != "none",
+        )
+        self.train_set = TripletDataset(
+            config.dataset, config.train_split, augment=True, jitter=config.jitter, **common
+        )
+        self.val_set = TripletDataset(
+            config.dataset, config.val_split, augment=False, **{**common, "crop": None}
+        )
+        _check_scales(config, self.train_set)
+        self.with_metrics = _split_has_gt(self.val_set)
+        self.best_metric = "rmse" if self.with_metrics else "photometric"
+        count = config.pictures if self.with_metrics else 0
+        self.pictures = picture_indices(len(self.val_set), count)
+        self.sbm = (
+            StatisticsMask(beta=settings.sbm_beta, q=settings.sbm_percentile)
+            if settings.sbm
+            else None
+        )
+        self.device = torch.device("cpu")
+        self.depth_net: DepthCompletionUNet | None = None
+        self.pose_net: PoseNet | None = None
+
+    def build_networks(self, device: torch.device) -> list[torch.nn.Module]:
+        config, settings = self.config, self.config.selfsup
+        self.device = device
+        self.depth_net = DepthCompletionUNet(
+            config.input_mode,
+            width=config.width,
+            output="disparity",
+            depth_range=settings.depth_range,
+            # metric runs start at a metric depth (see sparsetools.train.model)
+            initial_depth=METRIC_INITIAL_DEPTH if settings.metric_scale else None,
+            lidar_encoder=config.lidar_encoder,
+        ).to(device)
+        self.pose_net = PoseNet(
+            width=settings.pose_width, lidar_encoder=settings.pose_lidar_encoder
+        ).to(device)
+        return [self.depth_net, self.pose_net]
+
+    def restore(self, ckpt: Checkpoint) -> None:
+        load_weights(self.depth_net, ckpt.model, ckpt.path, "depth-network")
+        load_weights(self.pose_net, ckpt.pose_model, ckpt.path, "pose-network")
+        if self.sbm is not None:
+            self.sbm.threshold = ckpt.sbm_threshold
+
+    def step(self, batch: dict, state: TrainingState) -> StepResult:
+        config = self.config
+        disparities, transforms, sparse = _forward(
+            self.depth_net, self.pose_net, batch, self.device
+        )
+        terms = selfsup_loss(
+            disparities,
+            batch["frames"].to(self.device),
+            batch["K"].to(self.device),
+            transforms,
+            config.selfsup,
+            sparse=cap_depth(sparse, config.max_depth),
+            sbm=self.sbm,
+            update_sbm=True,
+            generator=noise_generator(config.seed, state.step),
+        )
+        return StepResult(terms.total, terms.as_row(), len(batch["index"]))
+
+    def validate(self, state: TrainingState, *, progress: bool) -> Validation:
+        config, sbm = self.config, self.sbm
+        val, val_pe = validate_selfsup(
+            self.depth_net,
+            self.pose_net,
+            self.val_set,
+            config,
+            device=self.device,
+            sbm=sbm,
+            with_metrics=self.with_metrics,
+            pictures=self.pictures,
+            progress=progress,
+        )
+        means = aggregate_metrics(val.per_image) if self.with_metrics else {}
+        columns = {
+            "train_photometric": state.epoch_mean("photometric"),
+            "train_reprojection": state.epoch_mean("reprojection"),
+            "train_sparse": state.epoch_mean("sparse"),
+            "train_mask_fraction": state.epoch_mean("mask_fraction"),
+            "val_loss": val.loss,
+            "photometric": val_pe,
+            "median_scaling": int(not config.selfsup.metric_scale),
+            **{k: means.get(k, math.nan) for k in METRIC_NAMES},
+            "val_images": means.get("n_images", len(self.val_set)),
+            "sbm_threshold": math.nan if sbm is None or sbm.threshold is None else sbm.threshold,
+        }
+        return Validation(columns, val.pictures)
+
+    def checkpoint_extras(self) -> dict:
+        threshold = None if self.sbm is None else self.sbm.threshold
+        return {"pose_model": self.pose_net, "sbm_threshold": threshold}
+
+    def describe(self, row: dict) -> str:
+        return (
+            f"train loss {row['train_loss']:.4g}, photometric {row['train_photometric']:.4g}, "
+            f"val {self.best_metric} {row[self.best_metric]:.4g}"
+        )
