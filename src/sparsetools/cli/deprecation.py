@@ -80,6 +80,7 @@ def deprecated(
                     except click.BadParameter as exc:
                         exc.param_hint = old  # name what the user typed
                         raise
+                ctx.set_parameter_source(dest, ParameterSource.COMMANDLINE)  # given, as typed
             return f(*args, **kw)
 
         return click.option(

@@ -10,11 +10,14 @@ import click
 from .options import (
     batch_size_option,
     device_option,
+    gt_option,
     json_option,
     max_depth_option,
+    min_depth_option,
     output_dir_option,
     overwrite_option,
     quiet_debug_options,
+    split_option,
 )
 from .train import progress_wanted
 
@@ -51,26 +54,10 @@ def _result_files(output: Path, checkpoint: Path | None, *, overwrite: bool) -> 
     type=click.Path(exists=True, file_okay=False, path_type=Path),
     help="Folder of predicted depth maps (KITTI uint16 PNG or .npy metres).",
 )
-@click.option(
-    "--gt",
-    "gt_dir",
-    type=click.Path(exists=True, file_okay=False, path_type=Path),
-    help="Folder of ground-truth depth maps, matched to --pred by file stem.",
-)
-@click.option(
-    "--split",
-    default="test",
-    show_default=True,
-    help="Split of DATASET evaluated with --checkpoint.",
-)
+@gt_option(dest="gt_dir", help="Folder of ground-truth depth maps, matched to --pred by file stem.")
+@split_option(default="test", help="Split of DATASET evaluated with --checkpoint.")
 @click.option("--garg-crop", is_flag=True, help="Evaluate inside the Garg crop only (KITTI Eigen).")
-@click.option(
-    "--min-depth",
-    type=click.FloatRange(min=0, min_open=True),
-    default=1e-3,
-    show_default=True,
-    help="Ground truth at or below this (m) is not evaluated.",
-)
+@min_depth_option(default=1e-3, help="Ground truth at or below this (m) is not evaluated.")
 @max_depth_option(default=80.0, help="Ground truth at or above this (m) is not evaluated.")
 @click.option(
     "--scaling",
@@ -125,8 +112,13 @@ def eval_(
         raise click.UsageError("give either --checkpoint with DATASET, or --pred with --gt")
     if checkpoint is None and pred_dir is None:
         raise click.UsageError("give --checkpoint RUN/best.pt DATASET, or --pred DIR --gt DIR")
-    if min_depth >= max_depth:
-        raise click.BadParameter("must be below --max-depth", param_hint="--min-depth")
+    from ..errors import ParameterError
+    from ..validate import check_ordered
+
+    try:
+        check_ordered(min_depth, max_depth, "min_depth", "max_depth")
+    except ParameterError as exc:
+        raise click.BadParameter(exc.message, param_hint=exc.option) from None
     median = {"auto": None, "median": True, "none": False}[scaling]
     if checkpoint is not None:
         if dataset is None:

@@ -230,11 +230,14 @@ def seed_option(f=None, *, default: int = 0, help: str | None = None):
     return deco(f) if f is not None else deco
 
 
-def gt_option(f=None, *, help: str, required: bool = False):
+def gt_option(f=None, *, help: str, required: bool = False, dest: str = "gt"):
+    """``--gt``: ground-truth depth maps (a file, a folder tree, a dataset tree)."""
+
     def deco(fn):
         return click.option(
-            "--gt", required=required, type=click.Path(exists=True, path_type=Path), help=help
-        )(fn)
+            "--gt", dest, required=required, type=click.Path(exists=True, path_type=Path),
+            help=help,
+        )(fn)  # fmt: skip
 
     return deco(f) if f is not None else deco
 

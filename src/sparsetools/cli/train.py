@@ -20,6 +20,7 @@ from .options import (
     root_flag,
     seed_option,
     size_wxh,
+    threads_option,
 )
 
 #: ``--input`` choices (the channels of each: docs/train.md).
@@ -323,9 +324,7 @@ def selfsup_options(f):
     show_default=True,
     help="Validation samples drawn in predictions/epoch_NNN.png.",
 )
-@click.option(
-    "--threads",
-    type=click.IntRange(min=1),
+@threads_option(
     default=None,
     help=(
         "torch CPU threads (default: the free cores, i.e. this process's CPUs that are idle "
