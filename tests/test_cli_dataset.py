@@ -237,7 +237,7 @@ def test_build_split_is_the_old_spelling_of_splits(inputs, tmp_path):
     assert both.exit_code == 2 and "give --splits only" in both.stderr
     assert not (tmp_path / "both").exists()
     bad = run(build_args(inputs, tmp_path / "bad", "--split", "0.5,abc"))  # read as --splits reads
-    assert bad.exit_code == 2 and "must be numbers" in bad.stderr
+    assert bad.exit_code == 2 and "split fractions as numbers" in bad.stderr
 
 
 def test_verify_workers_is_the_old_spelling_of_threads(inputs, tmp_path):

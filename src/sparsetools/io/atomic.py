@@ -31,14 +31,15 @@ def atomic_path(path: str | os.PathLike, *, overwrite: bool = True) -> Iterator[
     overwrite : bool
         When False and ``path`` exists, raise :class:`OutputError` before anything is written.
 
-    The temporary file keeps the suffix of ``path`` so writers that choose the format by
-    suffix (OpenCV, Open3D) still work. On any exception the temporary file is removed.
+    The temporary file keeps the last suffix of ``path`` so writers that choose the format
+    by suffix (OpenCV, Open3D) still work; its name is short whatever ``path``'s is. On any
+    exception the temporary file is removed.
     """
     path = Path(path)
     if not overwrite and path.exists():
         raise OutputError(f"{path} exists (use --overwrite to replace it)")
     parent = path.parent
-    name, fd = _open_temporary(parent, "".join(path.suffixes))
+    name, fd = _open_temporary(parent, path.suffix)
     os.close(fd)
     tmp = Path(name)
     try:
@@ -54,7 +55,7 @@ def atomic_path(path: str | os.PathLike, *, overwrite: bool = True) -> Iterator[
         except OSError as exc:
             if exc.errno in (errno.ENOSPC, errno.EDQUOT):
                 raise OutputError(f"no space left on device while writing {path}") from exc
-            if exc.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
+            if exc.errno in (errno.EROFS, errno.EACCES, errno.EPERM, errno.ENAMETOOLONG):
                 raise OutputError(f"cannot write {path}: {exc.strerror}") from exc
             raise
     except BaseException:
@@ -113,7 +114,7 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes | memoryview) -> Non
     path = Path(path)
     if not len(data) and not _allow_empty(path):
         raise OutputError(f"writing {path} produced no data")
-    name, fd = _open_temporary(path.parent, "".join(path.suffixes))
+    name, fd = _open_temporary(path.parent, path.suffix)
     try:
         try:
             view = memoryview(data).cast("B")
@@ -125,7 +126,7 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes | memoryview) -> Non
         except OSError as exc:
             if exc.errno in (errno.ENOSPC, errno.EDQUOT):
                 raise OutputError(f"no space left on device while writing {path}") from exc
-            if exc.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
+            if exc.errno in (errno.EROFS, errno.EACCES, errno.EPERM, errno.ENAMETOOLONG):
                 raise OutputError(f"cannot write {path}: {exc.strerror}") from exc
             raise
     except BaseException:

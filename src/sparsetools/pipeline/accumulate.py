@@ -38,7 +38,7 @@ from ..ops.accumulate import AccumulateSettings
 from ..validate import check_int_range, check_non_negative, check_positive
 from .batch import Batch, RunSummary
 from .core import BatchJob, FrameStats, FrameTask, run_job
-from .provenance import settings_dict
+from .provenance import clear_recorded, settings_dict
 
 __all__ = [
     "ICP_DIR",
@@ -315,6 +315,8 @@ class AccumulateJob(BatchJob[AccumulateInput]):
         """With ICP poses: register every consecutive pair first (its own resumable batch in
         ``OUT/icp``, in this run's lock); the totals of that stage."""
         if not self.icp or self.settings.window == 0:
+            if batch.overwrite:  # the folder is this run's: an earlier run's ICP poses go
+                clear_recorded(out_dir / ICP_DIR)
             return {}
         pairs = IcpPairJob(self.settings.icp)
         if not pairs.tasks(list(self.frames), out_dir / ICP_DIR):

@@ -78,6 +78,13 @@ class ExportJob(BatchJob[ExportInput]):
     settings: ExportSettings = field(default_factory=ExportSettings)
     default_split: str | None = None
 
+    def __post_init__(self) -> None:
+        for split in (self.default_split, *self.settings.splits.values()):
+            if split is not None:  # a folder name inside -o: no "..", no absolute path
+                check_key_part(split, "--split")
+                if not split or "/" in split:
+                    raise ParameterError(f"{split!r} is not one folder name", param="split")
+
     def tasks(self, frames: list[Frame], out_dir: Path) -> list[FrameTask[ExportInput]]:
         """One task per map (``Frame.depth``, keyed ``<drive>/<frame>``)."""
         s = self.settings

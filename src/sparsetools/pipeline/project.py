@@ -20,8 +20,8 @@ Outputs, per frame with key ``<sequence>/<frame>`` (a flat input has no ``<seque
 
 from __future__ import annotations
 
+import contextlib
 import logging
-import shutil
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import ClassVar
@@ -31,6 +31,7 @@ import numpy as np
 from ..calibration import Calibration
 from ..errors import FormatError, OutputError, ParameterError, SparsetoolsError
 from ..io.atomic import atomic_path
+from ..io.containment import remove_output
 from ..io.sources import Frame, FrameKey, Sweep
 from ..validate import (
     check_choice,
@@ -484,12 +485,12 @@ def _write_parquet(out_dir: Path, tasks: list[FrameTask], keep_old: bool) -> int
             if writer is not None:
                 writer.close()
     for part in parts:
-        part.unlink(missing_ok=True)
+        remove_output(out_dir, part)
     parts_dir = out_dir / PARTS_DIR
-    if parts_dir.is_dir():
+    if parts_dir.is_dir() and not parts_dir.is_symlink():
         for d in sorted((p for p in parts_dir.rglob("*") if p.is_dir()), reverse=True):
-            if not any(d.iterdir()):
-                d.rmdir()
-        if not any(parts_dir.iterdir()):
-            shutil.rmtree(parts_dir, ignore_errors=True)
+            with contextlib.suppress(OSError):
+                d.rmdir()  # only empty folders go
+        with contextlib.suppress(OSError):
+            parts_dir.rmdir()
     return len(sources)

@@ -18,6 +18,7 @@ On every run into a folder (:class:`OutputFolder`):
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import logging
@@ -35,6 +36,7 @@ from ..io.provenance import (
     FrameJournal,
     FrameRecord,
     RunRecord,
+    check_record_dir,
     file_identity,
     hold_lock,
     output_identity,
@@ -56,6 +58,7 @@ __all__ = [
     "OutputTree",
     "Plan",
     "check_made_by",
+    "clear_recorded",
     "settings_dict",
     "settings_difference",
 ]
@@ -180,6 +183,47 @@ def check_made_by(
             f"{place} holds {noun} made by sparsetools {record.version}, this is "
             f"{__version__}: {remedy}"
         )
+
+
+def clear_recorded(folder: str | os.PathLike) -> int:
+    """Remove what a folder's record says a run wrote there (regular files inside the folder
+    only), its record, and the folders left empty; return how many files were removed.
+
+    For a command's sub-output a rerun no longer makes (``accumulate``'s ``icp/`` after
+    ``--overwrite`` with poses from files): files the record does not list are never
+    touched.
+    """
+    folder = Path(folder)
+    try:
+        check_record_dir(folder)
+    except OutputError:
+        return 0
+    if read_run_record(folder) is None:
+        return 0
+    n = 0
+    with hold_lock(folder):
+        for rec in read_frame_records(folder).values():
+            for rel in rec.outputs.values():
+                p = contained_record_path(folder, rel)
+                if p is not None and remove_output(folder, p):
+                    n += 1
+                    _remove_empty_parents(p.parent, folder)
+        write_frame_records(folder, {})
+    remove_empty_record_dir(folder, run_record=True)
+    with contextlib.suppress(OSError):
+        folder.rmdir()
+    return n
+
+
+def _remove_empty_parents(d: Path, root: Path) -> None:
+    root = Path(os.path.abspath(root))
+    d = Path(os.path.abspath(d))
+    while d != root and root in d.parents:
+        try:
+            d.rmdir()
+        except OSError:
+            return
+        d = d.parent
 
 
 @dataclasses.dataclass

@@ -9,6 +9,7 @@ would be one frame (``x.png`` and ``x.jpg``) are an error naming both.
 
 from __future__ import annotations
 
+import logging
 import os
 import re
 from collections import Counter, defaultdict
@@ -30,7 +31,10 @@ __all__ = [
     "file_stem",
     "index_tree",
     "match_keys",
+    "walk_once",
 ]
+
+log = logging.getLogger(__name__)
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 DEPTH_SUFFIXES = (".png", ".npy")
@@ -116,6 +120,41 @@ def _drop_companions(files: dict[FrameKey, Path]) -> dict[FrameKey, Path]:
     return out
 
 
+def walk_once(root: str | os.PathLike):
+    """``os.walk`` that follows folder links but walks every real folder once.
+
+    Dataset trees are often assembled with links (a drive linked into a date folder), so
+    links are followed; a link back up the tree (``ln -s . x``) or a second link to a folder
+    already walked would repeat its frames (and two such loops walk 2^depth paths): such a
+    folder is left out, with a warning naming it. The walk is in the order ``os.walk`` gives;
+    callers sort what they keep.
+    """
+    seen: set[tuple[int, int]] = set()
+    try:
+        st = os.stat(root)
+        seen.add((st.st_dev, st.st_ino))
+    except OSError:
+        return
+    for dirpath, dirnames, filenames in os.walk(root, followlinks=True):
+        keep = []
+        for d in sorted(dirnames):  # which of two links to one folder is kept: the first by name
+            full = os.path.join(dirpath, d)
+            try:
+                st = os.stat(full)
+            except OSError:
+                continue  # a dangling link
+            ident = (st.st_dev, st.st_ino)
+            if ident in seen:
+                if not d.startswith(".") and d != RECORD_DIR:
+                    log.warning("%s: a link to a folder already read (a loop or a second link): "
+                                "left out", full)  # fmt: skip
+                continue
+            seen.add(ident)
+            keep.append(d)
+        dirnames[:] = keep
+        yield dirpath, dirnames, filenames
+
+
 def index_tree(
     path: str | os.PathLike,
     suffixes: tuple[str, ...],
@@ -160,7 +199,7 @@ def index_tree(
         if files:
             return FileIndex(root, files, layout="sparsetools")
     files: dict[FrameKey, Path] = {}
-    for dirpath, dirnames, filenames in os.walk(root, followlinks=True):
+    for dirpath, dirnames, filenames in walk_once(root):
         dirnames[:] = sorted(d for d in dirnames if not d.startswith(".") and d != RECORD_DIR)
         rel = Path(dirpath).relative_to(root).as_posix()
         sequence = "" if rel == "." else rel

@@ -18,6 +18,7 @@ from pathlib import Path
 
 from ...errors import FormatError
 from ...io.atomic import TMP_PREFIX
+from ...io.containment import ContainedPaths, remove_output
 from ...io.dataset import (
     MANIFEST_NAME,
     SPARSE_DIR,
@@ -73,6 +74,12 @@ def merge_staged(
     """
     import pyarrow as pa
 
+    # Everything written or deleted below is inside the dataset and reached through no link
+    # (a ds/sparse that links to another folder is refused, its parts are never touched).
+    contained = ContainedPaths(out)
+    for folder in (out / STAGING, out / SPARSE_DIR):
+        contained.check(folder, what="folder")
+    contained.check(out / MANIFEST_NAME)
     staging = out / STAGING
     staged_files = (
         sorted(p for p in staging.rglob("*.rec") if not p.name.startswith(TMP_PREFIX))
@@ -130,7 +137,7 @@ def merge_staged(
     referenced_old = {r.sparse_parquet for r in old_rows if r.sparse_parquet is not None}
     for p in on_disk:
         if f"{SPARSE_DIR}/{p.name}" not in referenced_old:
-            p.unlink()
+            remove_output(out, p)
     on_disk = [p for p in on_disk if p.exists()]
     next_part = 1 + max((i for p in on_disk if (i := _part_index(p.name)) is not None), default=-1)
     written = []
@@ -139,7 +146,7 @@ def merge_staged(
         nonlocal next_part
         rel = f"{SPARSE_DIR}/part-{next_part:05d}.parquet"
         next_part += 1
-        write_sparse_part(out / rel, table)
+        write_sparse_part(contained.check(out / rel), table)
         written.append(rel)
         for i, fid in enumerate(ids):
             changes[fid].update(sparse_parquet=rel, sparse_row=i)
@@ -179,8 +186,8 @@ def merge_staged(
     referenced = {r.sparse_parquet for r in rows if r.sparse_parquet is not None}
     for p in sorted(sparse_dir.glob("part-*.parquet")) if sparse_dir.is_dir() else []:
         if f"{SPARSE_DIR}/{p.name}" not in referenced:
-            p.unlink()
-    shutil.rmtree(staging, ignore_errors=True)
+            remove_output(out, p)
+    shutil.rmtree(staging, ignore_errors=True)  # a real folder (checked): links in it not followed
     result = _counts(rows)
     result["new_parts"] = len(written)
     return result
