@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -117,6 +118,11 @@ def test_text_summary_and_workers(inputs, tmp_path):
     res = run(build_args(inputs, tmp_path / "ds", "--workers", "2", "--sparse-format", "parquet"))
     assert res.exit_code == 0, res.output
     assert "samples" in res.stdout and "splits" in res.stdout and "train" in res.stdout
+    # one line per total, no internal timings (those are in --json's stage_seconds)
+    lines = res.stdout.splitlines()
+    assert lines[0] == f"dataset written to {tmp_path / 'ds'}"
+    assert not [ln for ln in lines if re.search(r"\bt_[a-z]+|stage", ln)], res.stdout
+    assert [ln.split()[0] for ln in lines[1:]].count("splits") == 1
     assert not list((tmp_path / "ds" / "sparse").rglob("*.png"))
 
 

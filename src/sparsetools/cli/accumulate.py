@@ -154,7 +154,8 @@ def accumulate(
     nearer than what frame t's own scan measured around them (inconsistent: moving objects)
     or inside --mask. Writes OUT/<sequence>/<frame>.png (KITTI uint16), the calibration as
     OUT/calib/<sequence>/<frame>.json and, with --icp, each pair's pose in
-    OUT/icp/<sequence>/<frame>.json; the summary counts the removals per frame and reason.
+    OUT/icp/<sequence>/<frame>.json. The summary counts the removals by reason (per frame,
+    and ICP's fitness per pair, with --json).
     A frame is recomputed when a scan of its window, its calibration or a pose file changed.
 
     \b
@@ -213,4 +214,10 @@ def accumulate(
     )
     summary = run_job(AccumulateJob(settings), inputs.frames, out_dir, batch=batch,
                       inputs=[*clouds, calib, image, poses, mask])  # fmt: skip
-    emit_summary(summary, as_json=as_json, title=f"accumulated depth maps in {out_dir}")
+    emit_summary(summary, as_json=as_json, title=f"accumulated depth maps in {out_dir}",
+                 details=PER_FRAME)  # fmt: skip
+
+
+#: Per-frame (per-pair) tables of the summary: with ``--json`` only, so the text summary has
+#: the same few lines for 5 frames or 5,000.
+PER_FRAME = ("removed_per_frame", "clipped_window_frames", "icp.per_pair")

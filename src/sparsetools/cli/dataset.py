@@ -241,29 +241,10 @@ def build(
     _summary(summary, as_json, out_dir)
 
 
-def _flat(summary: dict) -> dict:
-    """One line per value for the text summary (nested dicts joined)."""
-    out = {}
-    for k, v in summary.items():
-        if isinstance(v, dict) and k != "failures":
-            if not v:
-                continue
-            out[k] = ", ".join(f"{kk} {_fmt(vv)}" for kk, vv in v.items())
-        else:
-            out[k] = v
-    return out
-
-
-def _fmt(v) -> str:
-    if isinstance(v, float):
-        return f"{v:.4g}"
-    return str(v)
-
-
 def _summary(summary, as_json, out_dir) -> None:
-    d = summary.as_dict()
-    emit_summary(d if as_json else _flat(d), as_json=as_json,
-                 title=f"dataset written to {out_dir}")  # fmt: skip
+    """A build's summary; its stage timings (``stage_seconds``) with ``--json`` only."""
+    emit_summary(summary, as_json=as_json, title=f"dataset written to {out_dir}",
+                 details=("stage_seconds",))  # fmt: skip
 
 
 @dataset.command("nuscenes")

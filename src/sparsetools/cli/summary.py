@@ -1,8 +1,15 @@
-"""How a command prints its summary: ``key  value`` lines, or JSON with ``--json``."""
+"""How a command prints its summary: ``key  value`` lines, or JSON with ``--json``.
+
+The text summary has a fixed number of lines whatever the number of frames: one line per
+total (a nested group of totals, such as ``removed``, on one line). What grows with the batch
+(per-frame tables) or describes the run's inner workings (stage timings) is named in
+``details`` and printed with ``--json`` only. ``-q`` changes stderr only, never stdout.
+"""
 
 from __future__ import annotations
 
 import json
+from collections.abc import Iterable
 from pathlib import Path
 
 import click
@@ -10,9 +17,21 @@ import click
 __all__ = ["emit_summary"]
 
 
-def emit_summary(summary, *, as_json: bool, title: str = "") -> None:
+def emit_summary(summary, *, as_json: bool, title: str = "", details: Iterable[str] = ()) -> None:
     """Print a run summary (a RunSummary or a dict) on stdout (key: value lines, or JSON);
-    exit 1 if frames failed."""
+    exit 1 if frames failed.
+
+    Parameters
+    ----------
+    summary : RunSummary or dict
+    as_json : bool
+        Print everything as JSON (``--json``).
+    title : str
+        First line of the text summary.
+    details : iterable of str
+        Entries printed with ``--json`` only: ``name``, or ``group.name`` inside a nested
+        group (per-frame tables, stage timings).
+    """
     if hasattr(summary, "as_dict"):
         summary = summary.as_dict()
     if as_json:
@@ -20,11 +39,9 @@ def emit_summary(summary, *, as_json: bool, title: str = "") -> None:
     else:
         if title:
             click.echo(title)
-        rows = _flatten({k: v for k, v in summary.items() if k != "failures"})
+        rows = _text_rows(summary, details=details)
         width = max((len(k) for k, _ in rows), default=0)
         for k, v in rows:
-            if isinstance(v, float):
-                v = f"{v:.4g}"
             click.echo(f"{k:<{width}}  {v}")
         for fid, err in (summary.get("failures") or {}).items():
             click.echo(f"  failed {fid}: {err}")
@@ -34,17 +51,35 @@ def emit_summary(summary, *, as_json: bool, title: str = "") -> None:
         ctx.exit(1)
 
 
-def _flatten(d: dict, prefix: str = "") -> list[tuple[str, object]]:
-    """Nested dicts become ``parent.child`` rows; underscores of the summary's own names read
-    as spaces (nested keys are data, frame ids say: kept as they are)."""
+def _text_rows(summary: dict, *, details: Iterable[str] = ()) -> list[tuple[str, str]]:
+    """The ``(name, value)`` lines of a text summary: the summary's own names with spaces for
+    underscores, one line per entry (a nested group's entries joined on it: their names are
+    data, such as split names, and are kept as they are); ``details`` and ``failures`` left
+    out, and empty groups too."""
+    hidden: dict[str, set[str]] = {}
+    for name in details:
+        group, _, inner = name.partition(".")
+        hidden.setdefault(group, set()).add(inner)
     rows = []
-    for k, v in d.items():
-        key = f"{prefix}{k!s}" if prefix else str(k).replace("_", " ")
+    for k, v in summary.items():
+        drop = hidden.get(k, set())
+        if k == "failures" or "" in drop:
+            continue
         if isinstance(v, dict):
-            rows.extend(_flatten(v, key + "."))
-        else:
-            rows.append((key, v))
+            v = {kk: vv for kk, vv in v.items() if kk not in drop}
+            if not v:
+                continue
+        rows.append((str(k).replace("_", " "), _inline(v)))
     return rows
+
+
+def _inline(v, nested: bool = False) -> str:
+    if isinstance(v, dict):
+        text = ", ".join(f"{k} {_inline(x, nested=True)}" for k, x in v.items())
+        return f"({text})" if nested else text
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    return str(v)
 
 
 def _json_default(o):

@@ -109,4 +109,8 @@ def underwater(
     frames = image_frames([seafloor_dir], option="SEAFLOOR")
     job = UnderwaterJob(settings, water=tuple(f.image for f in water))
     summary = run_job(job, frames, out_dir, batch=batch, inputs=[seafloor_dir, water_dir])
-    emit_summary(summary, as_json=as_json, title=f"compensated frames written to {out_dir}")
+    # The counts every batch command prints count tasks, here segments of frames: the text
+    # says which (frames_*, segments_*); --json keeps them too, for scripts that read every
+    # command's summary alike.
+    emit_summary(summary, as_json=as_json, title=f"compensated frames written to {out_dir}",
+                 details=("processed", "skipped_existing", "recomputed", "failed"))  # fmt: skip

@@ -286,14 +286,24 @@ class UnderwaterJob(BatchJob[UnderwaterSegment]):
         return UnderwaterStats(images=len(images), invalid_pixels=invalid)
 
     def finish(self, summary: RunSummary, tasks: list, out_dir: Path) -> dict:
-        """Totals: ``segments``, ``frames``, ``images``, ``window``, ``a_ref`` (per sequence),
-        ``invalid_pixels``."""
+        """Totals, named by what they count (a task is a segment of frames): ``frames`` (the
+        seafloor frames given), ``frames_processed`` (compensated now),
+        ``frames_skipped_existing`` (up to date), ``segments`` and ``segments_processed``,
+        ``segments_skipped_existing``, ``segments_recomputed``, ``segments_failed``; then
+        ``window``, ``a_ref`` (per sequence when there are several) and ``invalid_pixels``."""
         stats = self.stats(summary)
+        done = {r.frame_id for r in summary.done}
+        images = {r.frame_id: st.images for r, st in zip(summary.ok, stats, strict=True)}
         a_refs = {k: list(v) for k, v in self.a_refs.items()}
         return {
-            "segments": len(summary.results),
             "frames": self.frames_total,
-            "images": sum(st.images for st in stats),
+            "frames_processed": sum(n for fid, n in images.items() if fid in done),
+            "frames_skipped_existing": sum(n for fid, n in images.items() if fid not in done),
+            "segments": len(summary.results),
+            "segments_processed": len(summary.done),
+            "segments_skipped_existing": len(summary.resumed),
+            "segments_recomputed": len(summary.recomputed),
+            "segments_failed": len(summary.failed),
             "window": self.settings.window,
             "a_ref": a_refs[next(iter(a_refs))] if len(a_refs) == 1 else a_refs,
             "invalid_pixels": sum(st.invalid_pixels for st in stats),
