@@ -1,9 +1,12 @@
 """The resume rule, command by command: between two runs into the same -o, a changed setting
-is refused (naming it) and a changed input file recomputes exactly the frames that read it."""
+is refused (naming it) and a changed input file recomputes exactly the frames that read it:
+their outputs then hold the bytes a fresh run gives, and the other frames' outputs are left
+as they were (same bytes, not rewritten)."""
 
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -12,7 +15,9 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from robustness.corpus_builder import tree_digest
 from sparsetools.cli.main import cli
+from sparsetools.io.provenance import RECORD_DIR
 
 SYNTH = Path(__file__).resolve().parent.parent / "sample_data" / "synthetic"
 
@@ -231,6 +236,47 @@ def _summary(result) -> dict:
     return json.loads(result.stdout)
 
 
+def _records(out: Path) -> dict[str, dict]:
+    """The folder's frame records by frame id."""
+    lines = (out / RECORD_DIR / "frames.jsonl").read_text().splitlines()
+    return {rec["key"]: rec for rec in map(json.loads, lines)}
+
+
+def _files(out: Path) -> dict[str, tuple[bytes, int]]:
+    """Relative path -> (bytes, mtime in ns) of every file (the record aside)."""
+    return {
+        p.relative_to(out).as_posix(): (p.read_bytes(), p.stat().st_mtime_ns)
+        for p in out.rglob("*")
+        if p.is_file() and RECORD_DIR not in p.relative_to(out).parts
+    }
+
+
+#: What a dataset build merges (the manifest and the Parquet parts of the points).
+PARTS = re.compile(r"^(manifest\.parquet|sparse/part-\d+\.parquet)$")
+
+
+def _without_parts(digests: dict) -> dict:
+    return {k: v for k, v in digests.items() if not PARTS.match(k)}
+
+
+def _dataset_content(ds: Path) -> tuple[dict, dict, dict]:
+    """A dataset's manifest rows (but where their points are stored), its metadata and each
+    sample's sparse points."""
+    from sparsetools.io.dataset import part_rows, read_manifest, read_sparse_part
+
+    table, info = read_manifest(ds / "manifest.parquet")
+    rows = {
+        r["id"]: {k: v for k, v in r.items() if k not in ("sparse_parquet", "sparse_row")}
+        for r in table.to_pylist()
+    }
+    points = {}
+    for part in sorted((ds / "sparse").glob("part-*.parquet")):
+        for fid, u, v, d, h, w in part_rows(read_sparse_part(part)):
+            assert fid not in points, f"{fid} in two parts"
+            points[fid] = (u.tobytes(), v.tobytes(), d.tobytes(), h, w)
+    return rows, info, points
+
+
 @pytest.mark.parametrize("case", CASES, ids=[c.name for c in CASES])
 def test_changed_setting_refused_changed_input_recomputed(case, data, tmp_path):
     out = tmp_path / "out"
@@ -250,10 +296,44 @@ def test_changed_setting_refused_changed_input_recomputed(case, data, tmp_path):
     assert case.message in lines[0] and "use --overwrite or another -o" in lines[0]
     assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
 
+    files, records = _files(out), _records(out)
     case.change(data)
     redo = _summary(run(*args, "--json"))
     assert redo["recomputed"] == case.recomputed and redo["processed"] == case.recomputed
     assert redo["skipped_existing"] == tasks - case.recomputed
+
+    # the frames whose record changed are exactly the recomputed ones; the others' outputs
+    # were not rewritten
+    now, records_now = _files(out), _records(out)
+    assert records_now.keys() == records.keys()
+    changed = [k for k in records if records_now[k] != records[k]]
+    assert len(changed) == case.recomputed, changed
+    for key, rec in records.items():
+        if key not in changed:
+            for rel in rec["outputs"].values():  # (dataset build: staged records merged, gone)
+                assert now.get(rel) == files.get(rel), f"{rel} of the up-to-date {key} changed"
+    # ... and the folder holds the bytes of a fresh run on today's inputs (records included)
+    fresh = tmp_path / "fresh"
+    assert _summary(run(*case.args(data, fresh), "--json"))["failed"] == 0
     if case.name == "dataset build":
+        # an appended dataset keeps its points in more parts than a fresh build (the
+        # rebuilt frame's old part is rewritten without it): the same rows and points
+        assert _dataset_content(out) == _dataset_content(fresh)
         r = run("dataset", "verify", out)
         assert r.exit_code == 0, r.output
+    assert _without_parts(tree_digest(out)) == _without_parts(tree_digest(fresh))
+
+
+def test_underwater_summary_names_what_it_counts(data, tmp_path):
+    """A task of underwater is a segment of frames: its summary counts both, by name."""
+    args = ["underwater", data / "seafloor", "--water", data / "water", "-o", tmp_path / "uw",
+            "--median-window", "3"]  # fmt: skip
+    s = _summary(run(*args, "--json"))
+    assert (s["frames"], s["frames_processed"], s["frames_skipped_existing"]) == (40, 40, 0)
+    assert (s["segments"], s["segments_processed"], s["segments_skipped_existing"]) == (2, 2, 0)
+    assert s["processed"] == s["segments_processed"]  # what every command's JSON counts: tasks
+    text = run(*args).stdout.splitlines()
+    rows = dict(ln.rsplit(None, 1) for ln in text[1:] if not ln.startswith(("a ref", "output")))
+    assert rows["frames"] == "40" and rows["frames skipped existing"] == "40"
+    assert rows["segments"] == "2" and rows["segments skipped existing"] == "2"
+    assert "processed" not in rows and "skipped existing" not in rows  # says what it counts

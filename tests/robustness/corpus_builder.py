@@ -10,8 +10,12 @@ documented non-error behaviour).
 from __future__ import annotations
 
 import hashlib
+import json
 import os
+import shutil
 import struct
+import subprocess
+import sys
 import zlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -19,6 +23,9 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+
+from sparsetools.io.atomic import TMP_PREFIX
+from sparsetools.io.provenance import RECORD_DIR
 
 # -- geometry of the small valid frame ----------------------------------------------------------
 
@@ -196,6 +203,17 @@ def good_frame(root: Path, stem: str = "000000", seed: int = 0) -> dict[str, Pat
     return out
 
 
+def replicate(root: Path, n: int) -> dict[str, Path]:
+    """``n`` frames: copies of one valid frame under new stems (distinct per-frame seeds)."""
+    f = good_frame(root)
+    for i in range(1, n):
+        stem = f"{i:06d}"
+        for key in ("cloud", "image", "depth"):
+            src = f[key]
+            shutil.copyfile(src, src.with_name(stem + src.suffix))
+    return f
+
+
 def underwater_tree(root: Path, n_seafloor: int = 3, n_water: int = 2) -> tuple[Path, Path]:
     rng = np.random.default_rng(5)
     sea, water = root / "seafloor", root / "water"
@@ -207,7 +225,13 @@ def underwater_tree(root: Path, n_seafloor: int = 3, n_water: int = 2) -> tuple[
 
 
 def tree_digest(root: Path) -> dict[str, str]:
-    """Relative path -> sha256 of content (or the link target for symbolic links)."""
+    """Relative path -> sha256 of content (or the link target for symbolic links).
+
+    Files of the folder's records (``.sparsetools/``) are digested without what differs
+    between two folders made alike: the folder's own path and the modification times of the
+    files inside it (outputs, and inputs that an earlier stage wrote there), see
+    :func:`record_text`.
+    """
     out = {}
     if not root.exists():
         return out
@@ -216,10 +240,43 @@ def tree_digest(root: Path) -> dict[str, str]:
         if p.is_symlink():
             out[rel] = "link:" + os.readlink(p)
         elif p.is_file():
-            out[rel] = hashlib.sha256(p.read_bytes()).hexdigest()
+            data = p.read_bytes()
+            if RECORD_DIR in p.relative_to(root).parts:
+                data = record_text(data, root).encode()
+            out[rel] = hashlib.sha256(data).hexdigest()
         elif p.is_dir():
             out[rel] = "dir"
     return out
+
+
+def record_text(data: bytes, root: Path) -> str:
+    """A record file (JSON or JSON lines) with ``root`` written ``<OUT>`` and the mtimes of
+    the files under it left out (the times of ``[path, size, mtime, sha256]`` input
+    identities under ``root`` and of every ``[size, mtime, digest]`` output identity);
+    sizes and hashes stay, so a truncated or different output still shows."""
+    text = data.decode("utf-8", errors="replace")
+    for prefix in {str(root.resolve()), os.path.abspath(root)}:
+        text = text.replace(prefix, "<OUT>")
+    lines = []
+    for line in text.splitlines():
+        try:
+            item = json.loads(line)
+        except ValueError:
+            lines.append(line)
+            continue
+        if isinstance(item, dict):
+            for ident in (item.get("output_ids") or {}).values():
+                if isinstance(ident, list) and len(ident) == 3:
+                    ident[1] = None
+            for ident in item.get("inputs") or ():
+                if (
+                    isinstance(ident, list)
+                    and len(ident) == 4
+                    and str(ident[0]).startswith("<OUT>")
+                ):
+                    ident[2] = None
+        lines.append(json.dumps(item, sort_keys=True))
+    return "\n".join(lines)
 
 
 def new_files(before: dict[str, str], root: Path) -> list[str]:
@@ -232,6 +289,84 @@ def temp_files(root: Path) -> list[str]:
     if not root.exists():
         return []
     return sorted(str(p) for p in root.rglob(".tmp-sparsetools-*"))
+
+
+# -- interrupting a run ----------------------------------------------------------------------
+
+
+class InterruptAt:
+    """``os.replace`` that raises KeyboardInterrupt at its ``n``-th call (1-based).
+
+    Only renames of the command's own outputs count: numba writes its on-disk cache with
+    ``os.replace`` too, on the first run in a fresh checkout only, which would shift the count.
+    """
+
+    def __init__(self, n: int):
+        self.n = n
+        self.calls = 0
+        self.real = os.replace
+
+    def __call__(self, src, dst, *a, **kw):
+        if TMP_PREFIX in os.path.basename(os.fspath(src)):
+            self.calls += 1
+            if self.calls == self.n:
+                raise KeyboardInterrupt
+        return self.real(src, dst, *a, **kw)
+
+
+# -- permission bits that bind root too -------------------------------------------------------
+
+#: Runs ``sparsetools ARGV[1:]`` in a process that first gives up the capabilities that let
+#: root ignore permission bits (CAP_DAC_OVERRIDE 1, CAP_DAC_READ_SEARCH 2: dropping one's own
+#: capabilities needs no privilege). It stays uid 0 in this process (no exec, which would
+#: give root every capability back), so it still reads root's 0700 temporary folders as their
+#: owner, but a ``chmod 555`` folder is read-only for it, as for any user.
+_WITHOUT_DAC_OVERRIDE = """
+import ctypes, sys
+libc = ctypes.CDLL(None, use_errno=True)
+class Header(ctypes.Structure):
+    _fields_ = [("version", ctypes.c_uint32), ("pid", ctypes.c_int)]
+class Data(ctypes.Structure):
+    _fields_ = [("effective", ctypes.c_uint32), ("permitted", ctypes.c_uint32),
+                ("inheritable", ctypes.c_uint32)]
+header, data = Header(0x20080522, 0), (Data * 2)()
+if libc.capget(ctypes.byref(header), data) != 0:
+    sys.exit("capget failed")
+keep = ~((1 << 1) | (1 << 2)) & 0xFFFFFFFF
+for field in ("effective", "permitted", "inheritable"):
+    setattr(data[0], field, getattr(data[0], field) & keep)
+if libc.capset(ctypes.byref(header), data) != 0:
+    sys.exit("capset failed")
+from sparsetools.cli.main import main
+main(sys.argv[1:])
+"""
+
+
+@dataclass
+class ProcessResult:
+    """What :func:`invoke_bound_by_permissions` returns: the fields of click's ``Result``
+    that the suite reads."""
+
+    exit_code: int
+    stdout: str
+    stderr: str
+    exception: BaseException | None = None
+
+    @property
+    def output(self) -> str:
+        return self.stdout + self.stderr
+
+
+def invoke_bound_by_permissions(args) -> ProcessResult:
+    """``sparsetools ARGS`` as a process to which permission bits apply, even when the suite
+    runs as root (as CI does): root's run gives up CAP_DAC_OVERRIDE and CAP_DAC_READ_SEARCH
+    first (see :data:`_WITHOUT_DAC_OVERRIDE`)."""
+    proc = subprocess.run(
+        [sys.executable, "-c", _WITHOUT_DAC_OVERRIDE, *map(str, args)],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert "capset failed" not in proc.stderr and "capget failed" not in proc.stderr, proc.stderr
+    return ProcessResult(proc.returncode, proc.stdout, proc.stderr)
 
 
 # -- the case table ------------------------------------------------------------------------------
@@ -253,6 +388,9 @@ class Case:
     build: Callable[[Path], Setup]
     expect: str = "error"  # "error" (exit 1), "usage" (exit 2) or "ok" (documented, exit 0)
     match: str = ""  # substring of the error line (case-insensitive)
-    root_only: bool | None = None  # True: run only as root; False: only as non-root
+    #: False: the case needs permission bits (a read-only folder); run by root, it runs in a
+    #: process without the capabilities that bypass them (:func:`invoke_bound_by_permissions`).
+    #: True: run only as root.
+    root_only: bool | None = None
     xfail: str = ""
     marks: list = field(default_factory=list)

@@ -13,7 +13,7 @@ import fnmatch
 
 import pytest
 from cli_helpers import IS_ROOT, assert_no_traceback, assert_one_error_line, invoke
-from corpus_builder import new_files, temp_files, tree_digest
+from corpus_builder import invoke_bound_by_permissions, new_files, temp_files, tree_digest
 from corpus_cases import CASES
 
 
@@ -21,9 +21,7 @@ def _params():
     out = []
     for c in CASES:
         marks = list(c.marks)
-        if c.root_only is False and IS_ROOT:
-            # Root bypasses permission bits, so a read-only folder cannot fail a write here:
-            # such cases are not collected (the /sys case covers unwritable output for root).
+        if c.root_only and not IS_ROOT:
             continue
         if c.xfail:
             marks.append(pytest.mark.xfail(strict=True, reason=c.xfail))
@@ -51,7 +49,11 @@ def test_bad_input(case, tmp_path, capfd):
     out_before = tree_digest(out) if out != in_dir else inputs_before
 
     capfd.readouterr()
-    result = invoke(setup.args)
+    if case.root_only is False and IS_ROOT:
+        # root ignores permission bits: this case runs in a process that gave that up
+        result = invoke_bound_by_permissions(setup.args)
+    else:
+        result = invoke(setup.args)
     # C libraries (OpenCV, libpng, Open3D/RPly) write to the file descriptors directly,
     # past click's capture: any such line would break the one-error-line contract.
     native = capfd.readouterr()

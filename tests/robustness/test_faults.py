@@ -29,31 +29,19 @@ import pytest
 from cli_helpers import assert_no_traceback, error_lines, invoke
 from corpus_builder import (
     H,
+    InterruptAt,
     W,
     corrupt_png,
-    good_frame,
     png_bytes,
+    replicate,
     temp_files,
     tree_digest,
     underwater_tree,
     write,
 )
 
-from sparsetools.io.atomic import TMP_PREFIX
-
 #: Counted into docs/reliability.md by hand: keep the two in step.
 KILLS_PER_RUN = 2
-
-
-def replicate(root: Path, n: int) -> dict[str, Path]:
-    """``n`` frames: copies of one valid frame under new stems (distinct per-frame seeds)."""
-    f = good_frame(root)
-    for i in range(1, n):
-        stem = f"{i:06d}"
-        for key in ("cloud", "image", "depth"):
-            src = f[key]
-            shutil.copyfile(src, src.with_name(stem + src.suffix))
-    return f
 
 
 def cli_command() -> list[str]:
@@ -199,30 +187,10 @@ INTERRUPTED = {
 }
 
 
-class _InterruptAt:
-    """``os.replace`` that raises KeyboardInterrupt at its ``n``-th call (1-based).
-
-    Only renames of the command's own outputs count: numba writes its on-disk cache with
-    ``os.replace`` too, on the first run in a fresh checkout only, which would shift the count.
-    """
-
-    def __init__(self, n: int):
-        self.n = n
-        self.calls = 0
-        self.real = os.replace
-
-    def __call__(self, src, dst, *a, **kw):
-        if TMP_PREFIX in os.path.basename(os.fspath(src)):
-            self.calls += 1
-            if self.calls == self.n:
-                raise KeyboardInterrupt
-        return self.real(src, dst, *a, **kw)
-
-
 @pytest.mark.parametrize("command", sorted(INTERRUPTED))
 def test_interrupt_at_every_rename_resumes_identically(command, tmp_path, monkeypatch):
     args_for = INTERRUPTED[command](tmp_path / "in")
-    counter = _InterruptAt(0)
+    counter = InterruptAt(0)
     monkeypatch.setattr(os, "replace", counter)
     r = invoke(args_for(tmp_path / "ref"))
     assert r.exit_code == 0, r.stderr
@@ -233,7 +201,7 @@ def test_interrupt_at_every_rename_resumes_identically(command, tmp_path, monkey
 
     for n in range(1, renames + 1):
         out = tmp_path / f"out{n}"
-        monkeypatch.setattr(os, "replace", _InterruptAt(n))
+        monkeypatch.setattr(os, "replace", InterruptAt(n))
         r = invoke(args_for(out))
         assert r.exit_code == 130, (n, r.exit_code, r.stderr)
         assert "Interrupted" in r.stderr
