@@ -309,3 +309,19 @@ def test_nuscenes_crop_is_wxh_left_top(monkeypatch, tmp_path):
         "WARNING: deprecated: --crop 100,0,350,800 (TOP,LEFT,H,W) is the old syntax: write "
         "--crop 800x350+0+100 (WxH+LEFT+TOP)"
     ]
+
+
+def test_info_counts_what_is_on_disk(inputs, tmp_path):
+    """The size of a dataset is what its folder holds: the files the manifest names, what a
+    route staged in .sources/ (kept for its reruns) and the rest (records), each once."""
+    out = tmp_path / "ds"
+    assert run(build_args(inputs, out)).exit_code == 0
+    staged = out / ".sources" / "images" / "000000.png"
+    staged.parent.mkdir(parents=True)
+    staged.write_bytes(b"x" * 5000)
+    (out / "rgb" / "link.png").symlink_to(staged)  # a link is not a second copy
+    info = json.loads(run(["dataset", "info", out, "--json"]).stdout)
+    on_disk = sum(p.stat().st_size for p in out.rglob("*") if p.is_file() and not p.is_symlink())
+    assert info["bytes"]["sources"] == 5000 and info["bytes"]["other"] > 0
+    assert info["total_bytes"] == on_disk == sum(info["bytes"].values())
+    assert "sources 4.9 KB" in run(["dataset", "info", out]).stdout

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import stat
 import statistics
 from collections import Counter, defaultdict
 from dataclasses import dataclass
@@ -28,6 +29,7 @@ from ...io.dataset import (
     resolve_in_dataset,
 )
 from ...validate import check_int_range
+from .build import SOURCES_DIR
 from .staging import STAGING
 
 __all__ = ["DatasetInfo", "SplitCounts", "Spread", "VerifyReport", "dataset_info", "verify_dataset"]
@@ -82,9 +84,12 @@ class DatasetInfo:
     density_percent : Spread
         Sparse points per 100 pixels.
     bytes : dict of kind -> int
-        File sizes per kind (``rgb``, ``sparse_png``, ``sparse_parquet``, ``gt``,
-        ``confidence``, ``manifest``).
+        File sizes per kind: the files the manifest names (``rgb``, ``sparse_png``,
+        ``sparse_parquet``, ``gt``, ``confidence``, ``manifest``), then the rest of what is
+        on disk in the folder: ``sources`` (what a route staged in ``.sources/``) and
+        ``other`` (records, an unfinished build's files, files of others).
     total_bytes : int
+        What the folder holds on disk (every regular file once; links not followed).
     missing_files : int
         Files the manifest names that are gone.
     split_method : dict, optional
@@ -188,22 +193,31 @@ def dataset_info(path: str | os.PathLike) -> DatasetInfo:
         )
     sizes = Counter(f"{r.width}x{r.height}" for r in rows)
     bytes_by_kind: dict[str, int] = defaultdict(int)
+    counted: set[str] = set()
     missing = 0
+
+    def count(kind: str, rel: str) -> None:
+        nonlocal missing
+        try:
+            p = resolve_in_dataset(root, rel)
+            size = p.stat().st_size
+        except OSError:
+            missing += 1
+            return
+        if os.path.realpath(p) not in counted:  # a file named twice is on disk once
+            counted.add(os.path.realpath(p))
+            bytes_by_kind[kind] += size
+
     for r in rows:
         for kind, col in _FILE_KINDS:
             rel = getattr(r, col)
-            if rel is None:
-                continue
-            try:
-                bytes_by_kind[kind] += resolve_in_dataset(root, rel).stat().st_size
-            except OSError:
-                missing += 1
+            if rel is not None:
+                count(kind, rel)
     for rel in sorted({r.sparse_parquet for r in rows if r.sparse_parquet is not None}):
-        try:
-            bytes_by_kind["sparse_parquet"] += resolve_in_dataset(root, rel).stat().st_size
-        except OSError:
-            missing += 1
-    bytes_by_kind["manifest"] = (root / MANIFEST_NAME).stat().st_size
+        count("sparse_parquet", rel)
+    count("manifest", MANIFEST_NAME)
+    for kind, size in _unlisted_bytes(root, counted).items():
+        bytes_by_kind[kind] += size
     return DatasetInfo(
         dataset=str(root),
         schema_version=info.get("schema_version"),
@@ -223,6 +237,26 @@ def dataset_info(path: str | os.PathLike) -> DatasetInfo:
         missing_files=missing,
         split_method=info.get("split"),
     )
+
+
+def _unlisted_bytes(root: Path, counted: set[str]) -> dict[str, int]:
+    """Bytes of the regular files under ``root`` that the manifest does not name (links not
+    followed): ``sources``, what a route staged in ``DATASET/.sources/`` (reused by its
+    reruns), and ``other`` (the build's records, files left by an unfinished build, files
+    of others)."""
+    out: dict[str, int] = {}
+    sources = root / SOURCES_DIR
+    for folder, _, files in os.walk(root):
+        kind = "sources" if Path(folder) == sources or sources in Path(folder).parents else "other"
+        for name in files:
+            p = os.path.join(folder, name)
+            try:
+                st = os.lstat(p)
+            except OSError:
+                continue
+            if stat.S_ISREG(st.st_mode) and os.path.realpath(p) not in counted:
+                out[kind] = out.get(kind, 0) + st.st_size
+    return out
 
 
 # -- verify ----------------------------------------------------------------------------------------
