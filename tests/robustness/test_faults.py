@@ -7,7 +7,9 @@ Three kinds of fault:
 - an interrupt (``KeyboardInterrupt``, what Ctrl-C raises) at *every* atomic rename of a
   small run, one run per rename, then a rerun — this reaches the merge steps at the end of a
   batch (Parquet tables, manifests) that a kill rarely hits;
-- one bad frame among good ones with ``--on-error skip``.
+- one bad frame among good ones with ``--on-error skip`` (listed, the rest done) and with
+  ``--on-error stop`` (the frames completed before it kept, complete and recorded: after the
+  fix the rerun does only the rest).
 
 After every rerun the output folder must be byte-identical to an uninterrupted run in
 another folder and hold no temporary file.
@@ -26,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from cli_helpers import assert_no_traceback, error_lines, invoke
+from cli_helpers import assert_no_traceback, assert_one_error_line, error_lines, invoke
 from corpus_builder import (
     H,
     InterruptAt,
@@ -299,6 +301,38 @@ def test_on_error_skip_reports_the_bad_frame_and_does_the_rest(command, tmp_path
     assert [Path(g).stem for g in got] == [Path(g).stem for g in good]
     assert not temp_files(out)
     assert tree_digest(tmp_path / "in") == inputs
+
+
+def _fix(root: Path, bad: str) -> None:
+    """Replace the bad frame's files by copies of frame 000000's (as ``replicate`` made)."""
+    for p in root.rglob(f"{bad}.*"):
+        p.write_bytes(p.with_name("000000" + p.suffix).read_bytes())
+
+
+@pytest.mark.parametrize("command", sorted(SKIPPED))
+def test_on_error_stop_keeps_the_frames_done_before_the_failure(command, tmp_path):
+    args, bad, _ = SKIPPED[command](tmp_path / "in")
+    before = sorted(f"{i:06d}" for i in range(int(bad)))  # --workers 1: frames in order
+    out, ref = tmp_path / "out", tmp_path / "ref"
+    r = invoke([*args, "--workers", "1", "--on-error", "stop", "-o", out])
+    assert_one_error_line(r, f"frame {bad}")
+    kept = tree_digest(out)
+    assert not any(bad in k for k in kept), "the failed frame left files"
+    assert not temp_files(out)
+
+    _fix(tmp_path / "in", bad)
+    r = invoke([*args, "--workers", "1", "--json", "-o", out])
+    assert r.exit_code == 0, r.stderr
+    summary = json.loads(r.stdout)
+    assert invoke([*args, "--workers", "1", "-o", ref]).exit_code == 0
+    reference = tree_digest(ref)
+    for stem in before:  # kept, complete ...
+        mine = {k: v for k, v in kept.items() if stem in k and k in reference}
+        assert mine, f"frame {stem}, done before the failure, was removed"
+        assert all(reference[k] == v for k, v in mine.items()), f"frame {stem} is damaged"
+    # ... and recorded: the rerun does only the rest, and ends as an uninterrupted run
+    assert (summary["skipped_existing"], summary["processed"]) == (len(before), 5 - len(before))
+    assert tree_digest(out) == reference
 
 
 def test_skip_then_fix_then_rerun_does_only_the_fixed_frame(tmp_path):

@@ -5,9 +5,9 @@ guard it names is disabled (the audit table of docs/reliability.md says how each
   (a batch folder, a single file, a whole tree: the three callers of
   ``pipeline.provenance.check_made_by``), and those of a compatible version
   (``COMPATIBLE_VERSIONS``) resume.
-- ``--on-error stop`` keeps the frames completed before the failed one, complete and
-  recorded: after the bad input is fixed, the rerun does only the rest and ends with the
-  bytes of an uninterrupted run.
+
+``--on-error stop``'s guarantee (the frames completed before the failure are kept, complete
+and recorded) is tested beside ``--on-error skip`` in ``test_faults.py``.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 from cli_helpers import assert_no_traceback, assert_one_error_line, invoke
-from corpus_builder import H, W, corrupt_png, replicate, temp_files, tree_digest, write
+from corpus_builder import H, W, replicate, tree_digest
 
 from sparsetools import __version__
 from sparsetools.io.provenance import RECORD_DIR, file_record_path
@@ -94,66 +94,3 @@ def test_outputs_of_a_compatible_version_resume(kind, tmp_path):
         assert {k: v for k, v in now.items() if RECORD_DIR not in k} == {
             k: v for k, v in before.items() if RECORD_DIR not in k
         }
-
-
-# -- --on-error stop -------------------------------------------------------------------------------
-
-N = 5
-BAD = "000003"  # frames 000000-000002 are done before it (--workers 1 runs frames in order)
-
-
-def _stop_project(root: Path):
-    f = replicate(root, N)
-    bad = f["cloud"].with_name(f"{BAD}.bin")
-    return (lambda out: ["project", f["cloud"].parent, "--calib", f["calib"], "--image-size",
-                         f"{W}x{H}", "-o", out]), bad, b"\x00" * 100  # fmt: skip
-
-
-def _stop_lowlight(root: Path):
-    f = replicate(root, N)
-    bad = f["image"].with_name(f"{BAD}.png")
-    return (lambda out: ["lowlight-synth", f["image"].parent, "--seed", "3", "-o", out]), bad, \
-        corrupt_png()  # fmt: skip
-
-
-def _stop_dataset(root: Path):
-    f = replicate(root, N)
-    bad = f["depth"].with_name(f"{BAD}.png")
-    return (lambda out: ["dataset", "build", "--rgb", f["image"].parent, "--sparse",
-                         f["depth"].parent, "-o", out]), bad, corrupt_png()  # fmt: skip
-
-
-STOPPED = {
-    "project": _stop_project,
-    "lowlight-synth": _stop_lowlight,
-    "dataset-build": _stop_dataset,
-}
-
-
-@pytest.mark.parametrize("command", sorted(STOPPED))
-def test_on_error_stop_keeps_the_frames_done_before_the_failure(command, tmp_path):
-    args_for, bad, broken = STOPPED[command](tmp_path / "in")
-    good = bad.read_bytes()
-    ref, out = tmp_path / "ref", tmp_path / "out"
-
-    write(bad, broken)
-    r = invoke([*args_for(out), "--workers", "1", "--on-error", "stop"])
-    assert_one_error_line(r, f"frame {BAD}")
-    kept = tree_digest(out)
-    assert not any(BAD in k for k in kept), "the failed frame left files"
-    assert not temp_files(out)
-
-    write(bad, good)
-    r = invoke([*args_for(out), "--workers", "1", "--json"])
-    assert r.exit_code == 0, r.stderr
-    summary = json.loads(r.stdout)
-    assert invoke([*args_for(ref), "--workers", "1"]).exit_code == 0
-    reference = tree_digest(ref)
-    for i in range(3):  # the frames done before the failure were kept, complete
-        stem = f"{i:06d}"
-        mine = {k: v for k, v in kept.items() if stem in k and k in reference}
-        assert mine, f"frame {stem}, done before the failure, was removed"
-        assert all(reference[k] == v for k, v in mine.items()), f"frame {stem} is damaged"
-    # ... and recorded: the rerun does only the rest, and ends as an uninterrupted run
-    assert (summary["skipped_existing"], summary["processed"]) == (3, N - 3), summary
-    assert tree_digest(out) == reference

@@ -98,14 +98,9 @@ def densify(sparse, out_dir, method, variant, extrapolate, multiscale, inversion
     from ..pipeline.densify import DensifyJob
 
     try:
-        settings = DensifySettings(
-            method=method,
-            variant=variant,
-            extrapolate=extrapolate,
-            multiscale=multiscale,
-            max_depth=inversion_offset,
-            outside=outside,
-        )
+        settings = DensifySettings(method=method, variant=variant, extrapolate=extrapolate,
+                                   multiscale=multiscale, max_depth=inversion_offset,
+                                   outside=outside)  # fmt: skip
     except ParameterError as exc:  # the library's max_depth is this command's option
         if exc.param != "max_depth":
             raise
