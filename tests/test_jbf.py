@@ -334,7 +334,7 @@ def test_kernel_is_cached_on_disk():
     from sparsetools.ops import jbf
 
     # cache=True: a new process loads the machine code instead of compiling again.
-    for kernel in (jbf._expand_gray, jbf._expand_rgb, jbf._offset_table):
+    for kernel in (jbf.expand, jbf.band, jbf._offset_table):
         assert type(kernel._cache).__name__ != "NullCache"
 
 

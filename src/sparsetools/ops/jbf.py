@@ -30,16 +30,11 @@ import numpy as np
 from ..errors import ParameterError
 from ._jbf_kernels import (
     _offset_table,  # noqa: F401 - looked up here by the tests (cache check)
-    band_gray,
-    band_rgb,
-    expand_gray,
-    expand_rgb,
+    band,
+    expand,
     mark_seeds,
     prologue,
 )
-
-# The single-threaded kernels under the names the tests look up (cache checks).
-_expand_gray, _expand_rgb = expand_gray, expand_rgb
 
 __all__ = [
     "CONFLICTS",
@@ -348,7 +343,10 @@ def _expand(
     height, width = guide.shape[:2]
     use_spatial = kernel in ("jbf", "spatial")
     use_range = kernel in ("jbf", "range")
-    rgb = guide.ndim == 3
+    # One kernel for any channel count: the guidance as (H, W, C), and C as the length of a
+    # tuple, which numba compiles into the kernel (one machine code per C).
+    guide = guide.reshape(height, width, -1)
+    channels = tuple(range(guide.shape[2]))
 
     # Squared distances are integers, so both Gaussians are tables indexed by them. Entries
     # past a table can never pass the threshold (each kernel is <= 1), which makes the cut
@@ -367,7 +365,7 @@ def _expand(
     else:
         spatial_lut = np.ones(1, dtype=np.float64)
     if use_range:
-        max_sq = 255 * 255 * (3 if rgb else 1)
+        max_sq = 255 * 255 * len(channels)
         cut = 2.0 * sigma_r**2 * math.log(1.0 / threshold)
         n = int(min(max_sq, math.ceil(cut))) + 1
         dI2 = np.arange(n, dtype=np.float64)
@@ -391,6 +389,7 @@ def _expand(
         np.ascontiguousarray(half_u[order], dtype=np.int64),
         np.ascontiguousarray(half_v[order], dtype=np.int64),
         np.ascontiguousarray(guide),
+        channels,
         spatial_lut,
         range_lut,
         use_spatial,
@@ -401,21 +400,20 @@ def _expand(
         out[1],
     )
     if edges is None:
-        (expand_rgb if rgb else expand_gray)(*args)
+        expand(*args)
     else:
-        _expand_bands(args, rgb, [int(e) for e in edges])
+        _expand_bands(args, [int(e) for e in edges])
     return out[0], out[1]
 
 
-def _expand_bands(args, rgb: bool, edges: list[int]) -> None:
+def _expand_bands(args, edges: list[int]) -> None:
     """The compiled expansion on row bands ``edges[b]:edges[b + 1]``, one per thread."""
-    (rows, cols, depths, half_u, half_v, guide, spatial_lut, range_lut, use_spatial, use_range,
-     threshold, max_confidence, depth, conf) = args  # fmt: skip
+    (rows, cols, depths, half_u, half_v, guide, channels, spatial_lut, range_lut, use_spatial,
+     use_range, threshold, max_confidence, depth, conf) = args  # fmt: skip
     tables = prologue(rows, cols, depths, spatial_lut, range_lut, use_spatial, use_range,
                       threshold, depth, conf)  # fmt: skip
-    band = band_rgb if rgb else band_gray
-    head = (rows, cols, depths, half_u, half_v, guide, spatial_lut, range_lut, use_spatial,
-            use_range, max_confidence, *tables, depth, conf)  # fmt: skip
+    head = (rows, cols, depths, half_u, half_v, guide, channels, spatial_lut, range_lut,
+            use_spatial, use_range, max_confidence, *tables, depth, conf)  # fmt: skip
     bands = list(itertools.pairwise(edges))
     pool = _thread_pool(len(bands) - 1) if len(bands) > 1 else None
     futures = [pool.submit(band, *head, lo, hi) for lo, hi in bands[1:]]
