@@ -38,11 +38,14 @@ __all__ = [
     "check_choice",
     "check_dtype",
     "check_finite",
+    "check_flag",
     "check_int_range",
     "check_non_negative",
+    "check_nonempty",
     "check_odd",
     "check_ordered",
     "check_pair",
+    "check_points",
     "check_positive",
     "check_probability",
     "check_range",
@@ -187,6 +190,14 @@ def check_choice(value, name: str, choices: Iterable[str]) -> str:
             f"must be one of {', '.join(map(str, choices))}, got {value!r}", param=name
         )
     return value
+
+
+def check_flag(value, name: str) -> bool:
+    """``value`` as a bool when it is one (``True``/``False`` or a numpy bool; not 0, 1 or a
+    string, which would read as a flag by accident)."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise ParameterError(f"must be True or False, got {value!r}", param=name)
+    return bool(value)
 
 
 def check_ordered(low, high, low_name: str, high_name: str) -> None:
@@ -365,6 +376,32 @@ def check_same_shape(a, b, name_a: str, name_b: str, *, dims: int | None = None)
         raise ParameterError(
             f"is {sa} but {name_b} is {sb}: they must have one shape", param=name_a
         )
+
+
+def check_nonempty(items, name: str) -> None:
+    """``items`` (a sequence: scans, sweeps, panels, rings...) holds at least one element."""
+    if len(items) == 0:
+        raise ParameterError("must hold at least one item, got none", param=name)
+
+
+def check_points(a, name: str = "points", *, nonempty: bool = False) -> int:
+    """``a`` is a point cloud: an (N, C) array of real numbers with C >= 3 and x, y, z in its
+    first three columns; returns C. With ``nonempty``, also refuse a cloud with no point.
+
+    The array is not converted (``np.asarray`` a list before) and its values are not looked
+    at: whether NaN coordinates are an error depends on the operation.
+    """
+    if not hasattr(a, "shape"):
+        raise ParameterError(f"must be an (N, C>=3) array, got {type(a).__name__}", param=name)
+    shape = tuple(int(n) for n in a.shape)
+    if len(shape) != 2 or shape[1] < 3:
+        raise ParameterError(
+            f"must have shape (N, C>=3) with x, y, z first, got {shape}", param=name
+        )
+    check_dtype(a, name, "fiu")
+    if nonempty and shape[0] == 0:
+        raise ParameterError("has no points", param=name)
+    return int(shape[1])
 
 
 # -- text syntaxes -------------------------------------------------------------------------------
