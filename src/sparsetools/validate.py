@@ -323,7 +323,9 @@ def check_shape(a, spec: str, name: str, *, nonempty: bool = False) -> dict[str,
         raise ParameterError(
             f"must be an array of shape {spec}, got {type(a).__name__}", param=name
         )
-    shape = tuple(int(n) for n in shape)
+    # A list, not a generator: tuple(generator) over-allocates then shrinks, and CPython's
+    # tuple free list keeps each shrunk block (a per-frame check would grow memory to ~100 KB).
+    shape = tuple([int(n) for n in shape])
     for dims in _parse_shape_spec(spec):
         sizes = _match_shape(shape, dims)
         if sizes is not None:
@@ -393,7 +395,7 @@ def check_points(a, name: str = "points", *, nonempty: bool = False) -> int:
     """
     if not hasattr(a, "shape"):
         raise ParameterError(f"must be an (N, C>=3) array, got {type(a).__name__}", param=name)
-    shape = tuple(int(n) for n in a.shape)
+    shape = tuple([int(n) for n in a.shape])  # a list: see check_shape
     if len(shape) != 2 or shape[1] < 3:
         raise ParameterError(
             f"must have shape (N, C>=3) with x, y, z first, got {shape}", param=name
