@@ -253,7 +253,7 @@ def test_noise_bad_arguments():
         sample_noise_params(np.random.default_rng(0), ratio_range=(4.0, 2.0))
     with pytest.raises(ParameterError, match="--model: must be one of"):
         sample_noise_params(np.random.default_rng(0), model="poisson")
-    with pytest.raises(ParameterError, match="--raw: signal must be >= 0"):
+    with pytest.raises(ParameterError, match="--raw: values must be >= 0, got a minimum of -1"):
         add_sensor_noise(np.full((4, 4), -1.0), _noise())
     with pytest.raises(ParameterError, match="--raw: holds NaN"):
         add_sensor_noise(np.full((4, 4), np.nan), _noise())
@@ -417,7 +417,9 @@ def test_bad_images_are_refused_clearly():
         lowlight(np.zeros((10, 10, 3), np.float32), rng=0)
     with pytest.raises(ParameterError, match="--image: is empty"):
         lowlight(np.zeros((0, 10, 3), np.uint8), rng=0)
-    with pytest.raises(ParameterError, match=r"--depth: must have shape \(60, 160\), got \(30, 80\)"):
+    with pytest.raises(
+        ParameterError, match=r"--depth: must have shape \(60, 160\), got \(30, 80\)"
+    ):
         lowlight(_day(), depth=np.ones((30, 80)), rng=0)
     with pytest.raises(ParameterError, match="--K: holds NaN"):
         lowlight(_day(), K=np.full((3, 3), np.nan), rng=0)

@@ -39,6 +39,7 @@ __all__ = [
     "check_dtype",
     "check_finite",
     "check_flag",
+    "check_instance",
     "check_int_range",
     "check_non_negative",
     "check_nonempty",
@@ -51,6 +52,7 @@ __all__ = [
     "check_range",
     "check_same_shape",
     "check_shape",
+    "check_values",
     "format_crop",
     "is_legacy_crop",
     "parse_crop",
@@ -198,6 +200,14 @@ def check_flag(value, name: str) -> bool:
     if not isinstance(value, (bool, np.bool_)):
         raise ParameterError(f"must be True or False, got {value!r}", param=name)
     return bool(value)
+
+
+def check_instance(value, name: str, types: type | tuple[type, ...]):
+    """``value`` when it is an instance of ``types`` (a settings record, a calibration...)."""
+    if not isinstance(value, types):
+        want = " or ".join(t.__name__ for t in (types if isinstance(types, tuple) else (types,)))
+        raise ParameterError(f"must be a {want}, got {type(value).__name__}", param=name)
+    return value
 
 
 def check_ordered(low, high, low_name: str, high_name: str) -> None:
@@ -378,6 +388,29 @@ def check_same_shape(a, b, name_a: str, name_b: str, *, dims: int | None = None)
         raise ParameterError(
             f"is {sa} but {name_b} is {sb}: they must have one shape", param=name_a
         )
+
+
+def _fmt_value(v) -> str:
+    return str(int(v)) if float(v).is_integer() and abs(v) < 1e15 else f"{float(v):.4g}"
+
+
+def check_values(a, name: str, *, low: float | None = None, high: float | None = None) -> None:
+    """Every value of the array ``a`` lies in ``[low, high]`` (either bound optional); NaN
+    never does. An empty array passes."""
+    arr = np.asarray(a)
+    if arr.size == 0:
+        return
+    lo, hi = arr.min(), arr.max()
+    if (low is None or lo >= low) and (high is None or hi <= high):
+        return
+    got = f"got values in [{_fmt_value(lo)}, {_fmt_value(hi)}]"
+    if low is not None and high is not None:
+        want = f"lie in [{_fmt_value(low)}, {_fmt_value(high)}]"
+    elif low is not None:
+        want, got = f"be >= {_fmt_value(low)}", f"got a minimum of {_fmt_value(lo)}"
+    else:
+        want, got = f"be <= {_fmt_value(high)}", f"got a maximum of {_fmt_value(hi)}"
+    raise ParameterError(f"values must {want}, {got}", param=name)
 
 
 def check_nonempty(items, name: str) -> None:

@@ -51,6 +51,7 @@ from ..validate import (
     check_all_finite,
     check_choice,
     check_dtype,
+    check_instance,
     check_int_range,
     check_non_negative,
     check_nonempty,
@@ -224,8 +225,7 @@ class AccumulationResult:
 
 
 def _check_inputs(scans, poses, calib, reference, moving_mask):
-    if not isinstance(calib, Calibration):
-        raise ParameterError(f"calib must be a Calibration, got {type(calib).__name__}")
+    check_instance(calib, "calib", Calibration)
     width, height = calib.size
     check_nonempty(scans, "scans")
     poses = np.asarray(poses, dtype=np.float64)
@@ -309,10 +309,7 @@ def accumulate_scans(
         Bad shapes, poses, settings, mask or reference.
     """
     s = AccumulateSettings() if settings is None else settings
-    if not isinstance(s, AccumulateSettings):
-        raise ParameterError(
-            f"must be an AccumulateSettings, got {type(s).__name__}", param="settings"
-        )
+    check_instance(s, "settings", AccumulateSettings)
     scans, poses, reference, moving_mask, width, height = _check_inputs(
         scans, T_world_from_velo, calib, reference, moving_mask
     )

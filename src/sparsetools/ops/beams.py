@@ -20,6 +20,7 @@ from ..validate import (
     check_non_negative,
     check_nonempty,
     check_shape,
+    check_values,
 )
 from .lidar_profile import (
     SensorProfile,
@@ -272,8 +273,7 @@ def pl_sparsify_index(
     check_nonempty(spec, "line_spec")
     if len(set(spec)) != len(spec):
         raise ParameterError(f"line_spec repeats a bin: {spec}")
-    if min(spec) < 0 or max(spec) >= height:
-        raise ParameterError(f"line_spec bins must lie in 0..{height - 1}, got {spec}")
+    check_values(spec, "line_spec", low=0, high=height - 1)  # bins of the grid
     img_w, img_h = image_size
     M = np.asarray(projection, dtype=np.float64)
     check_shape(M, "(3, 4)", "projection")
@@ -446,8 +446,7 @@ def select_beams(
         check_nonempty(chosen, "rings")
         if len(set(chosen)) != len(chosen):
             raise ParameterError(f"rings repeat: {tuple(rings)}")
-        if chosen[0] < 0 or chosen[-1] >= n_lasers:
-            raise ParameterError(f"rings must lie in 0..{n_lasers - 1}, got {tuple(rings)}")
+        check_values(chosen, "rings", low=0, high=n_lasers - 1)
         if n is not None and n != len(chosen):
             raise ParameterError(f"N = {n} but {len(chosen)} rings were given")
         mode = "rings"

@@ -31,7 +31,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import ParameterError
 from ..validate import (
     check_all_finite,
     check_array,
@@ -41,6 +40,7 @@ from ..validate import (
     check_odd,
     check_same_shape,
     check_shape,
+    check_values,
 )
 
 __all__ = [
@@ -92,11 +92,7 @@ def _as_unit_rgb(image: np.ndarray) -> np.ndarray:
         return image.astype(np.float32) / np.float32(255.0)
     img = image.astype(np.float32)
     check_all_finite(img, "image")
-    if img.min() < 0 or img.max() > 1:
-        raise ParameterError(
-            f"a float image must lie in [0, 1], got [{img.min():.4g}, {img.max():.4g}]",
-            param="image",
-        )
+    check_values(img, "image", low=0.0, high=1.0)
     return img
 
 

@@ -36,12 +36,14 @@ from ..validate import (
     check_array,
     check_choice,
     check_dtype,
+    check_instance,
     check_non_negative,
     check_ordered,
     check_pair,
     check_positive,
     check_range,
     check_shape,
+    check_values,
 )
 from .noise import CAMERA_PROFILES, NOISE_MODELS, NoiseParams, add_sensor_noise, sample_noise_params
 
@@ -400,8 +402,7 @@ def _check_inputs(image, depth) -> tuple[np.ndarray, np.ndarray]:
     else:
         img = image.astype(np.float32)
         check_all_finite(img, "image")
-        if img.min() < 0 or img.max() > 1:
-            raise ParameterError("a float image must lie in [0, 1]", param="image")
+        check_values(img, "image", low=0.0, high=1.0)
     d = np.asarray(depth)
     if d.ndim == 3 and d.shape[2] == 1:
         d = d[:, :, 0]
@@ -522,12 +523,9 @@ def defocus(
     img, d = _check_inputs(image, depth)
     h, w = d.shape
     if record is not None:
+        check_instance(record, "record", (DefocusRecord, dict))
         if isinstance(record, dict):
             record = DefocusRecord.from_dict(record)
-        elif not isinstance(record, DefocusRecord):
-            raise ParameterError(
-                f"record must be a DefocusRecord or dict, got {type(record).__name__}"
-            )
         else:
             record._check()
         if (record.height, record.width) != (h, w):

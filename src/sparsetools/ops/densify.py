@@ -70,8 +70,10 @@ from ..validate import (
     check_choice,
     check_dtype,
     check_flag,
+    check_instance,
     check_range,
     check_shape,
+    check_values,
 )
 from .raster import rasterise_triangles
 
@@ -243,10 +245,7 @@ def _check_depth(depth) -> np.ndarray:
     check_dtype(d, "depth", "f")
     check_all_finite(d, "depth")
     out = np.array(d, dtype=np.float32, order="C")  # always a copy: the steps work in place
-    if out.size and out.min() < 0:
-        raise ParameterError(
-            f"must be >= 0 m (0 = empty), got a minimum of {out.min()}", param="depth"
-        )
+    check_values(out, "depth", low=0.0)  # metres, 0 = empty
     return out
 
 
@@ -564,8 +563,7 @@ def densify(depth: np.ndarray, settings: DensifySettings | None = None) -> Densi
     DensifyResult
     """
     s = DensifySettings() if settings is None else settings
-    if not isinstance(s, DensifySettings):
-        raise ParameterError(f"must be a DensifySettings, got {type(s).__name__}", param="settings")
+    check_instance(s, "settings", DensifySettings)
     if s.method == "nearest":
         return fill_nearest(depth)
     if s.method == "linear":

@@ -23,6 +23,7 @@ from ..validate import (
     check_nonempty,
     check_points,
     check_shape,
+    check_values,
 )
 
 __all__ = ["SensorProfile", "fit_sensor_profile"]
@@ -77,12 +78,7 @@ def _check_ring(ring: np.ndarray, n_points: int, n_lasers: int) -> np.ndarray:
     ring = np.asarray(ring)
     check_shape(ring, f"({n_points})", "ring")
     check_dtype(ring, "ring", "iu")
-    if ring.size and (ring.min() < 0 or ring.max() >= n_lasers):
-        raise ParameterError(
-            f"values must lie in 0..{n_lasers - 1}, got {ring.min()}..{ring.max()} "
-            "(wrong n_lasers?)",
-            param="ring",
-        )
+    check_values(ring, "ring", low=0, high=n_lasers - 1)  # one of the n_lasers lasers
     return ring
 
 

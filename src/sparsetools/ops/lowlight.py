@@ -25,6 +25,7 @@ from ..validate import (
     check_choice,
     check_dtype,
     check_flag,
+    check_instance,
     check_pair,
     check_positive,
     check_shape,
@@ -389,12 +390,9 @@ def lowlight(
     depth = _check_depth(depth, (h, w))
     K = _check_intrinsics(K)
     if record is not None:
+        check_instance(record, "record", (LowLightRecord, dict))
         if isinstance(record, dict):
             record = LowLightRecord.from_dict(record)
-        elif not isinstance(record, LowLightRecord):
-            raise ParameterError(
-                f"record must be a LowLightRecord or dict, got {type(record).__name__}"
-            )
         if (record.height, record.width) != (h, w):
             raise ParameterError(
                 f"record was drawn for a {record.width}x{record.height} image, got {w}x{h}"

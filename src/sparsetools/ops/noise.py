@@ -45,6 +45,7 @@ from ..validate import (
     check_positive,
     check_range,
     check_shape,
+    check_values,
 )
 
 __all__ = [
@@ -349,8 +350,7 @@ def add_sensor_noise(raw: np.ndarray, params: NoiseParams) -> np.ndarray:
     if params.model == "none":
         return x.copy()
     check_all_finite(x, "raw")
-    if x.size and x.min() < 0:
-        raise ParameterError("signal must be >= 0 DN", param="raw")
+    check_values(x, "raw", low=0.0)  # DN
     from scipy import stats
 
     gen = np.random.default_rng(params.seed)

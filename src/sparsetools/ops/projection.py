@@ -34,6 +34,7 @@ from ..calibration import Calibration
 from ..errors import ParameterError
 from ..validate import (
     check_all_finite,
+    check_instance,
     check_int_range,
     check_non_negative,
     check_nonempty,
@@ -198,8 +199,7 @@ def _check_points(points: np.ndarray, name: str = "points") -> np.ndarray:
 def _check_options(
     calib: Calibration, min_depth: float, max_depth: float | None, pixel_offset: int
 ) -> tuple[np.ndarray, int, int, float, float, int]:
-    if not isinstance(calib, Calibration):
-        raise ParameterError(f"must be a Calibration, got {type(calib).__name__}", param="calib")
+    check_instance(calib, "calib", Calibration)
     width, height = calib.size
     min_depth = check_non_negative(min_depth, "min_depth")
     if max_depth is None:

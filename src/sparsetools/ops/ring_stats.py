@@ -9,8 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import ParameterError
-from ..validate import check_dtype, check_int_range, check_non_negative, check_shape
+from ..validate import check_dtype, check_int_range, check_non_negative, check_shape, check_values
 from .lidar_profile import _check_n_lasers, _check_points, _check_ring, _grouped_median, _polar
 
 __all__ = ["RingTable", "ring_elevations", "ring_table"]
@@ -102,8 +101,7 @@ def ring_table(points: np.ndarray, ring: np.ndarray, *, far_range: float = 20.0)
     check_shape(ring, f"({points.shape[0]})", "ring")
     if ring.size:
         check_dtype(ring, "ring", "iu")
-        if ring.min() < 0:
-            raise ParameterError("values must be >= 0", param="ring")
+        check_values(ring, "ring", low=0)
     k = int(ring.max()) + 1 if ring.size else 0
     ring = ring.astype(np.intp)
     r, z = _polar(points)
