@@ -256,7 +256,10 @@ def flare_bank(*, seed: int = 0, count: int = 16, size: int = 256) -> FlareBank:
         Read-only arrays. An on-disk copy (to build it once for a whole process pool) is
         :func:`sparsetools.io.flare_bank.cached_flare_bank`.
     """
-    return _cached_bank(int(seed), int(count), int(size))
+    seed = check_int_range(seed, "seed")
+    count = check_int_range(count, "count", low=1, high=256)
+    size = check_int_range(size, "size", low=32, high=1024)
+    return _cached_bank(seed, count, size)
 
 
 # --------------------------------------------------------------------------- placement

@@ -22,7 +22,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from ..errors import ParameterError
-from ..validate import check_dtype, check_shape
+from ..validate import check_dtype, check_shape, check_values
 
 __all__ = ["dense_to_sparse", "infer_channels_last", "sparse_to_dense"]
 
@@ -144,8 +144,7 @@ def sparse_to_dense(
         C = 1
     else:
         B, H, W, C = shape if channels_last else (shape[0], shape[2], shape[3], shape[1])
-    if min(shape) < 0:
-        raise ParameterError(f"must not have negative sizes, got {shape}", param="shape")
+    check_values(shape, "shape", low=0)  # sizes
     n = check_shape(coords, "(N, 3)", "coords")["N"]  # [x, y, b]
     if coords.size:
         check_dtype(coords, "coords", "iu")

@@ -119,6 +119,11 @@ def gray_world(image: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray
         Pixels used for the means (default all).
     """
     img = np.asarray(image, np.float32)
+    check_shape(img, "(H, W, C)", "image")
+    if valid is not None:
+        valid = np.asarray(valid)
+        check_shape(valid, "({}, {})".format(*img.shape[:2]), "valid")
+        check_dtype(valid, "valid", (np.bool_,))
     px = img[valid] if valid is not None else img.reshape(-1, img.shape[-1])
     if px.size == 0:
         return img.copy()
@@ -270,7 +275,9 @@ class UnderwaterCompensator:
         -------
         (C,) float32, all > 0
         """
-        signal = np.asarray(median, np.float32) - self.backscatter
+        median = np.asarray(median, np.float32)
+        check_shape(median, "({}, {}, {})".format(*self.shape), "median")
+        signal = median - self.backscatter
         # One contiguous channel at a time: numpy.median of a 1-D array is a quick select.
         a = np.array(
             [np.median(np.ascontiguousarray(signal[..., c]).ravel()) for c in range(self.shape[2])],
