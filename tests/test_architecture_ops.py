@@ -211,3 +211,75 @@ def test_hand_written_raises_do_not_come_back():
 def test_the_vocabulary_texts_catch_the_old_hand_written_checks(text):
     """The patterns are live: messages of the checks issue 22 replaced are caught."""
     assert any(re.search(p, text) for p in VOCABULARY_TEXTS)
+
+
+# -- the functions ops added to the vocabulary -----------------------------------------------------
+
+
+def test_check_points():
+    import numpy as np
+
+    from sparsetools.errors import ParameterError
+
+    assert validate.check_points(np.zeros((5, 4), np.float32)) == 4
+    assert validate.check_points(np.zeros((0, 3), np.int16)) == 3
+    for bad, text in (
+        (
+            np.zeros((5, 2)),
+            r"--points: must have shape \(N, C>=3\) with x, y, z first, got \(5, 2\)",
+        ),
+        (np.zeros(5), r"got \(5,\)"),
+        (np.zeros((5, 3), bool), "--points: must be floating point"),
+        ([[0, 0, 1]], "--points: must be an \\(N, C>=3\\) array, got list"),
+    ):
+        with pytest.raises(ParameterError, match=text):
+            validate.check_points(bad)
+    with pytest.raises(ParameterError, match="--scans: has no points"):
+        validate.check_points(np.zeros((0, 3)), "scans", nonempty=True)
+
+
+def test_check_values():
+    import numpy as np
+
+    from sparsetools.errors import ParameterError
+
+    validate.check_values(np.array([0, 63]), "ring", low=0, high=63)
+    validate.check_values(np.zeros(0), "ring", low=0, high=63)  # empty passes
+    for a, kw, text in (
+        (
+            np.array([3, 70]),
+            dict(low=0, high=63),
+            r"--ring: values must lie in \[0, 63\], got values in \[3, 70\]",
+        ),
+        (
+            np.array([-0.5, 2.0]),
+            dict(low=0.0),
+            "--depth: values must be >= 0, got a minimum of -0.5",
+        ),
+        (
+            np.array([0.2, 1.5]),
+            dict(high=1.0),
+            "--depth: values must be <= 1, got a maximum of 1.5",
+        ),
+        (np.array([np.nan, 1.0]), dict(low=0.0), "got a minimum of nan"),
+    ):
+        name = "ring" if "ring" in text else "depth"
+        with pytest.raises(ParameterError, match=text):
+            validate.check_values(a, name, **kw)
+
+
+def test_check_flag_instance_and_nonempty():
+    import numpy as np
+
+    from sparsetools.errors import ParameterError
+
+    assert validate.check_flag(np.bool_(True), "ghosts") is True
+    for bad in (1, "yes", None):
+        with pytest.raises(ParameterError, match="--ghosts: must be True or False"):
+            validate.check_flag(bad, "ghosts")
+    assert validate.check_instance({}, "record", (dict, list)) == {}
+    with pytest.raises(ParameterError, match="--record: must be a dict or list, got int"):
+        validate.check_instance(3, "record", (dict, list))
+    validate.check_nonempty([1], "sweeps")
+    with pytest.raises(ParameterError, match="--sweeps: must hold at least one item, got none"):
+        validate.check_nonempty((), "sweeps")

@@ -13,7 +13,8 @@ Where each kind of check lives (DESIGN.md, "one validation vocabulary"):
 - settings records validate their values once, in ``__post_init__``, with the ``check_*``
   functions;
 - ``ops/`` checks arrays at its public boundary with :func:`check_array`,
-  :func:`check_shape`, :func:`check_dtype` and :func:`check_all_finite`.
+  :func:`check_shape`, :func:`check_dtype`, :func:`check_all_finite`, :func:`check_points`
+  and :func:`check_values` (``tests/test_architecture_ops.py`` holds it to that).
 
 The syntaxes every command shares are defined here once: a size is ``WxH`` (``1242x375``), a
 crop box is ``WxH+LEFT+TOP`` (``800x350+0+100``, ImageMagick's geometry), a pair or range is
