@@ -123,8 +123,18 @@ def test_bad_input():
     img = images()[0]
     with pytest.raises(ParameterError, match="odd"):
         dark_channel(img, window=4)
-    with pytest.raises(ParameterError, match="RGB"):
+    with pytest.raises(ParameterError, match=r"--image: must have shape \(H, W, 3\)"):
         dark_channel(img[:, :, 0])
+    with pytest.raises(ParameterError, match="--image: must be uint8 or float32 or float64"):
+        dark_channel(img.astype(np.uint16))
+    with pytest.raises(ParameterError, match="--image: must be a numpy array"):
+        dark_channel(img.tolist())
+    with pytest.raises(ParameterError, match="--dark: is .* but image is"):
+        lddcv(img, dark=np.zeros((3, 3), np.float32))
+    with pytest.raises(ParameterError, match=r"--variation: must have shape \(H, W, 2\)"):
+        lddcv_mask(np.zeros((3, 3)))
+    with pytest.raises(ParameterError, match="--threshold: must be a finite number >= 0"):
+        lddcv_mask(lddcv(img), threshold=-1)
     with pytest.raises(ParameterError, match=r"\[0, 1\]"):
         dark_channel(img.astype(np.float32))
     nan = img.astype(np.float32) / 255

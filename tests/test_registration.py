@@ -118,8 +118,10 @@ def test_bad_arguments():
         icp_pose(pts[:5], pts)
     with pytest.raises(ParameterError, match="beyond min_range"):
         icp_pose(pts, pts, min_range=100.0)
-    with pytest.raises(ParameterError, match="target_points"):
+    with pytest.raises(ParameterError, match="--target-points: must have shape"):
         icp_pose(pts, pts[:, :2])
+    with pytest.raises(ParameterError, match="--init: holds NaN"):
+        icp_pose(pts, pts, init=np.full((4, 4), np.nan))
     with pytest.raises(ParameterError, match="rigid"):
         icp_pose(pts, pts, init=np.diag([2.0, 1, 1, 1]))
     for kw in ({"voxel": 0}, {"max_distance": -1}, {"max_iterations": 0}, {"tukey_k": np.nan}):

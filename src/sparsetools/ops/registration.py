@@ -17,7 +17,14 @@ from typing import NamedTuple
 import numpy as np
 
 from ..errors import DependencyError, ParameterError
-from ..validate import check_int_range, check_non_negative, check_positive
+from ..validate import (
+    check_all_finite,
+    check_int_range,
+    check_non_negative,
+    check_points,
+    check_positive,
+    check_shape,
+)
 from .projection import rigid_inverse
 
 __all__ = ["IcpResult", "chain_poses", "icp_pose"]
@@ -61,8 +68,7 @@ def _import_open3d():
 
 def _check_cloud(name: str, points, min_range: float) -> np.ndarray:
     p = np.asarray(points)
-    if p.ndim != 2 or p.shape[1] < 3 or p.dtype.kind not in "fiu":
-        raise ParameterError(f"{name} must be (N, C>=3) numeric x, y, z, got {p.dtype} {p.shape}")
+    check_points(p, name)
     xyz = p[:, :3].astype(np.float64)
     keep = np.all(np.isfinite(xyz), axis=1)
     if min_range > 0:
@@ -77,8 +83,8 @@ def _check_cloud(name: str, points, min_range: float) -> np.ndarray:
 
 def _check_transform(name: str, T) -> np.ndarray:
     T = np.asarray(T, dtype=np.float64)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise ParameterError(f"{name} must be a finite 4x4 matrix, got shape {T.shape}")
+    check_shape(T, "(4, 4)", name)
+    check_all_finite(T, name)
     R = T[:3, :3]
     if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
         raise ParameterError(f"{name} is not a rigid transform (rotation not orthonormal)")
