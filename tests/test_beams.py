@@ -399,11 +399,11 @@ def kitti_frames():
         pytest.skip("real data folder ../shared/data/real is absent")
     from sparsetools.io.calib import load_calibration
     from sparsetools.io.image import read_image
-    from sparsetools.pipeline.beams import read_cloud_strict
+    from sparsetools.io.pointcloud import read_points
 
     frames = {}
     for stem in STEMS:
-        pts = read_cloud_strict(KITTI / "velodyne" / f"{stem}.bin")
+        pts = read_points(KITTI / "velodyne" / f"{stem}.bin", strict=True)
         h, w = read_image(KITTI / "image_2" / f"{stem}.png").shape[:2]
         calib = load_calibration(KITTI / "calib" / f"{stem}.txt").with_size(w, h)
         frames[stem] = (pts, calib)
@@ -508,9 +508,9 @@ def test_real_nuscenes_ring_column():
     files = sorted(NUSCENES.glob("*.pcd.bin")) if NUSCENES.is_dir() else []
     if not files:
         pytest.skip("real data folder ../shared/data/real is absent")
-    from sparsetools.pipeline.beams import read_cloud_strict
+    from sparsetools.io.pointcloud import read_points
 
-    pts = read_cloud_strict(files[0])
+    pts = read_points(files[0], strict=True)
     ring = recover_rings(pts, n_lasers=32, method="column")
     np.testing.assert_array_equal(ring, 31 - pts[:, 4].astype(int))  # nuScenes: 0 = bottom
     table = ring_table(pts, ring)
@@ -534,9 +534,9 @@ def synthetic_scene(tmp_path_factory):
 
 
 def test_synthetic_scene_rings_equal_simulated_lasers(synthetic_scene):
-    from sparsetools.pipeline.beams import read_cloud_strict
+    from sparsetools.io.pointcloud import read_points
 
-    pts = read_cloud_strict(synthetic_scene / "velodyne" / "000000.bin")
+    pts = read_points(synthetic_scene / "velodyne" / "000000.bin", strict=True)
     truth = np.load(synthetic_scene / "velodyne_ring" / "000000.npy")
     ring, method = recover_rings_with_method(pts)
     assert method == "scan-order"

@@ -152,7 +152,7 @@ def test_invalid_mask_where_factor_is_small():
 
 def test_segments_give_the_single_pass_result():
     """Processing [lo, hi) with ``emit`` equals the full pass, as the CLI's segments rely on."""
-    from sparsetools.pipeline.underwater import underwater_tasks
+    from sparsetools.pipeline.underwater import segment_tasks
 
     seafloor, water = _random_sequence(T=23, seed=5)
     full_comp = UnderwaterCompensator(water, window=7)
@@ -160,7 +160,7 @@ def test_segments_give_the_single_pass_result():
     from sparsetools.io.sources import Frame, FrameKey
 
     frames = [Frame(FrameKey("", f"{i:03d}"), image=Path(f"{i:03d}.png")) for i in range(23)]
-    tasks = underwater_tasks(frames, "out", window=7, a_ref=(1.0, 1.0, 1.0))
+    tasks = segment_tasks(frames, Path("out"), window=7, a_ref=(1.0, 1.0, 1.0))
     import sparsetools.pipeline.underwater as uw
 
     seg = uw.segment_length(7)

@@ -172,7 +172,7 @@ def test_export_split_is_one_folder_inside_out(tmp_path, split):
 
 
 def test_a_truncated_output_is_recomputed(world):
-    tmp, data, victim, out = world
+    _, data, _, out = world
     assert project(data, out).exit_code == 0
     png = out / "000001.png"
     good = png.read_bytes()
@@ -183,7 +183,7 @@ def test_a_truncated_output_is_recomputed(world):
 
 
 def test_an_edited_output_of_the_same_size_is_recomputed(world):
-    tmp, data, victim, out = world
+    _, data, _, out = world
     assert project(data, out).exit_code == 0
     png = out / "000000.png"
     good = png.read_bytes()
@@ -196,7 +196,6 @@ def test_an_input_changed_while_its_frame_ran_is_not_recorded(tmp_path):
     """Identities are taken before a frame runs and checked after: a frame whose input
     changed meanwhile keeps no record and is recomputed by the next run."""
     from _pipeline_jobs import ChangeInput, RandomInput
-
     from sparsetools.io.provenance import read_frame_records
     from sparsetools.io.sources import FrameKey
     from sparsetools.pipeline import FrameTask, RunSpec, run_frames
@@ -219,7 +218,7 @@ def test_a_run_refused_by_the_lock_leaves_the_running_run_alone(world):
     from sparsetools.io.atomic import TMP_PREFIX
     from sparsetools.io.provenance import hold_lock
 
-    tmp, data, victim, out = world
+    _, data, _, out = world
     assert project(data, out).exit_code == 0
     tmp_file = out / f"{TMP_PREFIX}12345-0-abcdef.png"
     tmp_file.write_bytes(b"being written by the first run")
@@ -231,7 +230,7 @@ def test_a_run_refused_by_the_lock_leaves_the_running_run_alone(world):
 
 
 def test_a_folder_of_020_gets_output_identities_on_its_next_run(world):
-    tmp, data, victim, out = world
+    _, data, _, out = world
     assert project(data, out).exit_code == 0
     journal = out / ".sparsetools" / "frames.jsonl"
     old = [json.loads(line) for line in journal.read_text().splitlines()]

@@ -229,7 +229,7 @@ class IPBasicStage:
 
 def _check_max_depth(value) -> float:
     # IP-Basic inverts max_depth - d on the depths in (_VALID, max_depth - _VALID).
-    return check_range(value, "max_depth", low=2 * _VALID, low_open=True)
+    return check_range(value, "inversion_offset", low=2 * _VALID, low_open=True)
 
 
 def _check_depth(depth) -> np.ndarray:
