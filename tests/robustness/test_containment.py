@@ -44,20 +44,24 @@ def snapshot(folder: Path) -> dict[str, str]:
     return out
 
 
-@pytest.fixture
-def world(tmp_path):
+def make_world(tmp: Path):
     """Inputs (two synthetic scans and their calibration), a victim folder of a user's own
     files beside the output, and the output folder's path."""
-    data = tmp_path / "data"
+    data = tmp / "data"
     for name in ("velodyne", "calib"):
         (data / name).mkdir(parents=True)
         for f in sorted((SYNTH / name).iterdir())[:2]:
             shutil.copy(f, data / name / f.name)
-    victim = tmp_path / "victim"
+    victim = tmp / "victim"
     victim.mkdir()
     (victim / "000000.png").write_bytes(b"the user's own file")
     (victim / "notes.txt").write_text("keep me")
-    return tmp_path, data, victim, tmp_path / "out"
+    return tmp, data, victim, tmp / "out"
+
+
+@pytest.fixture
+def world(tmp_path):
+    return make_world(tmp_path)
 
 
 def project(data: Path, out: Path, *extra):
@@ -287,17 +291,7 @@ def test_tampered_records_never_reach_outside_out(
 ):
     """Whatever a record holds (paths out of the folder, links, wrong types), a rerun with or
     without --overwrite creates, changes and deletes nothing outside -o."""
-    tmp = tmp_path_factory.mktemp("tamper")
-    data = tmp / "data"
-    for name in ("velodyne", "calib"):
-        (data / name).mkdir(parents=True)
-        for f in sorted((SYNTH / name).iterdir())[:2]:
-            shutil.copy(f, data / name / f.name)
-    victim = tmp / "victim"
-    victim.mkdir()
-    (victim / "000000.png").write_bytes(b"own")
-    (victim / "notes.txt").write_text("keep")
-    out = tmp / "out"
+    tmp, data, victim, out = make_world(tmp_path_factory.mktemp("tamper"))
     assert project(data, out).exit_code == 0
     if link:
         (out / "linked").symlink_to(victim)
