@@ -147,3 +147,20 @@ def test_bad_input():
         lddcv_mask(lddcv(img), combine="mean")
     with pytest.raises(ParameterError, match="empty"):
         dark_channel(np.zeros((0, 4, 3), np.uint8))
+
+
+def test_a_window_larger_than_the_image_is_bounded_by_it(monkeypatch):
+    """A window of 2 max(H, W) - 1 covers the image from every pixel: any larger one gives the
+    same map, and no kernel larger than that is built (30001 x 30001 bytes would be 900 MB)."""
+    import cv2
+
+    rng = np.random.default_rng(3)
+    image = rng.integers(0, 256, (32, 64, 3), dtype=np.uint8)
+    whole = dark_channel(image, window=127)
+    assert np.all(whole == whole.min())  # the whole image's minimum everywhere
+    sizes = []
+    make = cv2.getStructuringElement
+    monkeypatch.setattr(cv2, "getStructuringElement",
+                        lambda shape, size: sizes.append(size) or make(shape, size))  # fmt: skip
+    np.testing.assert_array_equal(dark_channel(image, window=30001), whole)
+    assert sizes and max(max(s) for s in sizes) <= 127

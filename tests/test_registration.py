@@ -138,3 +138,14 @@ def test_missing_open3d_is_a_dependency_error(monkeypatch):
     pts = np.random.default_rng(0).normal(size=(100, 3))
     with pytest.raises(DependencyError, match="Open3D"):
         icp_pose(pts, pts)
+
+
+def test_scans_open3d_cannot_register_are_a_clear_error_not_an_internal_one():
+    """Open3D refuses clouds spread over 1e30 m (its voxel grid overflows): one ParameterError
+    naming why, never Open3D's RuntimeError (which the command line reports as a bug)."""
+    from sparsetools.errors import ParameterError
+    from sparsetools.ops.registration import icp_pose
+
+    far = np.random.default_rng(0).normal(size=(100, 3)) * 1e30
+    with pytest.raises(ParameterError, match="ICP cannot register these scans: voxel_size"):
+        icp_pose(far, far)

@@ -96,9 +96,17 @@ def _as_unit_rgb(image: np.ndarray) -> np.ndarray:
     return img
 
 
+def _bounded(size: int, shape: tuple[int, ...]) -> int:
+    """The window's side clipped to the image: a window of 2 max(H, W) - 1 pixels already
+    covers the whole image from every pixel, so any larger one gives the same result (and
+    ``--patch-size 30001`` on a small image builds no 900 MB kernel)."""
+    return min(size, 2 * max(shape[:2]) - 1)
+
+
 def _window_min(x: np.ndarray, size: int) -> np.ndarray:
     import cv2
 
+    size = _bounded(size, x.shape)
     # erode's default border value is "+infinity" for a minimum: out-of-image pixels are ignored.
     kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (size, size))
     return cv2.erode(np.ascontiguousarray(x), kernel, borderType=cv2.BORDER_CONSTANT)
@@ -107,6 +115,7 @@ def _window_min(x: np.ndarray, size: int) -> np.ndarray:
 def _window_max(x: np.ndarray, size: int) -> np.ndarray:
     import cv2
 
+    size = _bounded(size, x.shape)
     kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (size, size))
     return cv2.dilate(np.ascontiguousarray(x), kernel, borderType=cv2.BORDER_CONSTANT)
 

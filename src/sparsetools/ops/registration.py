@@ -11,6 +11,7 @@ light). Pure computation: arrays in, arrays out.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -173,6 +174,21 @@ def icp_pose(
         else reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=tukey_k))
     )
     stages = _PYRAMID if coarse_to_fine else _PYRAMID[-1:]
+    try:
+        return _icp_stages(o3d, reg, src_full, tgt_full, T, estimation, stages, voxel=voxel,
+                           max_distance=max_distance, normal_radius=normal_radius,
+                           max_iterations=max_iterations)  # fmt: skip
+    except RuntimeError as exc:  # Open3D's own refusal of these clouds (extents, degeneracy)
+        text = re.sub(r"\x1b\[[0-9;]*m", "", str(exc))
+        reason = text.rsplit(": ", 1)[-1].strip().rstrip(".") or "Open3D failed"
+        raise ParameterError(
+            f"ICP cannot register these scans: {reason} (points spread over "
+            f"{float(np.ptp(source[:, :3])):.3g} m with --icp-voxel {voxel:g} m)"
+        ) from exc
+
+
+def _icp_stages(o3d, reg, src_full, tgt_full, T, estimation, stages, *, voxel, max_distance,
+                normal_radius, max_iterations) -> IcpResult:  # fmt: skip
     result = None
     for voxel_factor, distance_factor in stages:
         size = voxel * voxel_factor
