@@ -367,7 +367,7 @@ class DefocusRecord:
                 missing=str(d["missing"]), noise=NoiseParams.from_dict(d["noise"]),
                 noise_gamma=float(d["noise_gamma"]), version=version,
             )  # fmt: skip
-        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:
             if isinstance(exc, ParameterError):
                 raise
             raise ParameterError(

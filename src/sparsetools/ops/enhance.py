@@ -77,9 +77,9 @@ def mcie_lut(
     for c in range(ref.shape[2]):
         counts = np.bincount(ref[:, :, c].ravel(), minlength=256)
         if rounding == "rnw":
-            lut[:, c] = _rnw_table(counts, int(clip * n_pix))
+            lut[:, c] = _rnw_table(counts, int(min(clip, 1.0) * n_pix))  # >= 1: no clipping
         else:
-            lut[:, c] = _nearest_table(counts, clip * n_pix)
+            lut[:, c] = _nearest_table(counts, min(clip, 1.0) * n_pix)
     return lut
 
 

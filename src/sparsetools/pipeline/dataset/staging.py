@@ -15,7 +15,6 @@ import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -33,9 +32,7 @@ from ...io.dataset import (
     points_sha256,
 )
 from ..core import FrameStats
-
-if TYPE_CHECKING:
-    from .build import BuildSettings
+from .settings import BuildSettings
 
 __all__ = [
     "STAGES",
