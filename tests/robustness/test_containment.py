@@ -314,3 +314,20 @@ def test_tampered_records_never_reach_outside_out(
     r = project(data, out, *(["--overwrite"] if overwrite else []))
     assert "Traceback" not in r.output
     assert outside(tmp, out) == before
+
+
+def test_pipeline_never_replaces_a_users_report(tmp_path):
+    """``pipeline`` writes OUT/report.md and OUT/steps.json: a user's own files of those names
+    are refused before any step runs (--overwrite replaces them); its own are rewritten."""
+    config = tmp_path / "c.yaml"
+    config.write_text("name: t\nsteps:\n  - name: scene\n    run: synth-scene -o ${out}/s "
+                      "--frames 1 --image-size 32x16 --underwater-frames 0\n")  # fmt: skip
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "report.md").write_text("my own notes")
+    r = run("pipeline", config, "-o", out)
+    assert r.exit_code == 1 and "report.md" in r.stderr
+    assert (out / "report.md").read_text() == "my own notes" and not (out / "s").exists()
+    assert run("pipeline", config, "-o", out, "--overwrite").exit_code == 0
+    assert "my own notes" not in (out / "report.md").read_text()
+    assert run("pipeline", config, "-o", out).exit_code == 0  # its own report: rewritten

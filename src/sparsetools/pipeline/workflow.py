@@ -143,16 +143,28 @@ def run_workflow(
     run_command: CommandRunner,
     only: list[str] | None = None,
     echo=print,
+    overwrite: bool = False,
 ) -> list[StepResult]:
     """Run the steps in order and write ``OUT/report.md``; raise on the first failing step.
 
     Every command resumes (outputs that are up to date are kept), so a second run is cheap and
     rewrites the report. With ``only``, just those steps run and the report keeps the other
     steps' sections from the previous run (``OUT/steps.json``).
+
+    ``report.md`` and ``steps.json`` are replaced only when the pipeline wrote them (their
+    record says so) or with ``overwrite``: a user's own ``report.md`` in ``-o`` is refused
+    before any step runs.
     """
+    from ..io.containment import check_contained
     from .core import check_output_dir
+    from .provenance import OutputFile
 
     out = check_output_dir(out_dir, [])
+    written = [OutputFile(out / name, "pipeline", {}, [], overwrite=overwrite, noun="a report")
+               for name in ("report.md", "steps.json")]  # fmt: skip
+    for f in written:
+        check_contained(out, f.path)
+        f.up_to_date()  # refuses a file the pipeline did not write
     names = [s.name for s in workflow.steps]
     if only:
         unknown = [n for n in only if n not in names]
@@ -191,6 +203,8 @@ def run_workflow(
     ]
     with atomic_path(out / "steps.json") as tmp:
         tmp.write_text(json.dumps(steps, indent=1), encoding="utf-8")
+    for f in written:
+        f.record()
     if failed is not None:
         last = (failed.stderr.strip().splitlines() or ["(no message)"])[-1]
         raise ParameterError(f"step '{failed.step.name}' failed (exit {failed.exit_code}): {last}")
