@@ -152,6 +152,22 @@ def test_resume_refuses_a_config_json_of_another_run(runs, dataset, tmp_path):
     assert snapshot(run) == before
 
 
+@pytest.mark.parametrize("value", [None, "line one\nline two", 5])
+def test_resume_refuses_a_config_json_naming_no_run_or_a_strange_one(
+    runs, dataset, tmp_path, value
+):
+    """A readable config.json must name the checkpoint's run (0.2.0's named none); whatever it
+    holds instead is shown on one line."""
+    run = copy_run(runs, "a", tmp_path)
+    saved = json.loads((run / "config.json").read_text())
+    if value is None:
+        saved.pop("run_id")
+    else:
+        saved["run_id"] = value
+    (run / "config.json").write_text(json.dumps(saved))
+    assert_one_error_line(resume(dataset, run), "config.json to run")
+
+
 def test_resume_refuses_a_best_pt_of_another_run(runs, dataset, tmp_path):
     """best.pt is what `eval RUN` evaluates: another run's would pass for this run's best."""
     run = copy_run(runs, "a", tmp_path)

@@ -494,7 +494,9 @@ def _shown(value) -> str:
     """A run id as messages show it (``none`` for runs of sparsetools 0.2.0)."""
     if value is None:
         return "none (sparsetools 0.2.0)"
-    text = repr(value) if not isinstance(value, str) else value
+    if isinstance(value, str) and RUN_ID.fullmatch(value):
+        return value
+    text = repr(value)  # anything else, quoted: one line, whatever it holds
     return text if len(text) <= 40 else text[:37] + "..."
 
 
