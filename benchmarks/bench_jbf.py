@@ -8,15 +8,24 @@ nearest rule, so both produce the same maps (checked below). Ours runs with one 
 with the default (bands of rows, one per CPU this process may use; the same maps), each
 against the reference in alternating runs; goal (issue 18): >= 20x at 800x450. Every line
 states the machine's load: threads only help when a core is free.
-Run: ``python benchmarks/bench_jbf.py``.
+
+The package keeps one band kernel for a gray and an RGB guidance (issue 22: the channel count
+compiled into the kernel); :func:`merged_vs_separate` times it against the two kernels it
+replaced, loaded from the git history (:data:`SEPARATE_KERNELS_COMMIT`, so no copy of them
+lives in the tree), on the same arguments, interleaved, one thread: the merge stays if it is
+within 3 % for gray and for RGB.
+Run: ``python benchmarks/bench_jbf.py`` (all), ``python benchmarks/bench_jbf.py --kernels``
+(the merged-vs-separate comparison alone).
 """
 
 from __future__ import annotations
 
 import os
+import statistics
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +34,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _timing import compare_interleaved, load, median_seconds
 
 REAL = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "real"
+ROOT = Path(__file__).resolve().parent.parent
+#: The last commit whose ops/_jbf_kernels.py has one band kernel per guidance (gray, RGB).
+SEPARATE_KERNELS_COMMIT = "31995e29649dc20e0e74ec00a4ff6b3e072cfe14"
 NUSCENES_FX = 1266.417203046554  # CAM_FRONT of the mmdet3d demo sample, 1600x900
 
 
@@ -187,7 +199,140 @@ def bench_size(width: int, height: int) -> dict:
     return result
 
 
+def kernel_args(radar, guide, fx: float, **kw) -> tuple:
+    """The arguments ``jbf._expand`` passes to the one-thread compiled expansion (one call)."""
+    from sparsetools.ops import jbf
+
+    captured = []
+    real = jbf.expand
+    jbf.expand = lambda *args: (captured.append(args), real(*args))
+    try:
+        jbf.jbf_expand(radar, guide, fx=fx, fy=fx, threads=1, **kw)
+    finally:
+        jbf.expand = real
+    return captured[0]
+
+
+def separate_kernels():
+    """``(expand_gray, expand_rgb)`` of :data:`SEPARATE_KERNELS_COMMIT`, or None outside a git
+    checkout that has it. The module is self-contained (numba and numpy only): it is written
+    to a temporary folder and imported from there by name (numba's cache finds it again)."""
+    import importlib
+
+    name = "src/sparsetools/ops/_jbf_kernels.py"
+    r = subprocess.run(["git", "show", f"{SEPARATE_KERNELS_COMMIT}:{name}"], cwd=ROOT,
+                       capture_output=True, text=True)  # fmt: skip
+    if r.returncode != 0:
+        return None
+    # One folder per commit: numba's cache=True then compiles the old kernels once.
+    folder = Path(tempfile.gettempdir()) / f"sparsetools-bench-jbf-{SEPARATE_KERNELS_COMMIT[:12]}"
+    folder.mkdir(exist_ok=True)
+    path = folder / "jbf_kernels_separate.py"
+    if not path.exists() or path.read_text() != r.stdout:
+        path.write_text(r.stdout)
+    sys.path.insert(0, str(folder))
+    try:
+        module = importlib.import_module("jbf_kernels_separate")
+    finally:
+        sys.path.remove(str(folder))
+    return module.expand_gray, module.expand_rgb
+
+
+def merged_vs_separate(sizes=((800, 450), (1600, 900)), *, repeat: int = 41) -> list[dict]:
+    """The merged band kernel against the gray and RGB kernels it replaced: same arguments,
+    runs interleaved (merged, separate, merged, ...), one thread, medians of ``repeat``.
+
+    Every combination of guidance (gray, rgb), conflict rule and size; both must give the same
+    bytes. Prints one line each with the ratio merged / separate (> 1: the merged kernel is
+    slower) and the load, then the worst ratio per guidance.
+    """
+    from sparsetools.ops._jbf_kernels import expand
+
+    kernels = separate_kernels()
+    if kernels is None:
+        print(f"merged vs separate kernels: skipped (no git history {SEPARATE_KERNELS_COMMIT})")
+        return []
+    expand_gray, expand_rgb = kernels
+    rows = []
+    print(f"merged band kernel vs the separate gray/RGB kernels, 1 thread | {load()}")
+    for width, height in sizes:
+        fx = NUSCENES_FX * width / 1600
+        rgb = guidance_image(width, height)
+        radar = radar_seeds(width, height)
+        for metric in ("gray", "rgb"):
+            for conflict in ("nearest", "max-confidence"):
+                args = kernel_args(radar, rgb, fx, range_metric=metric, conflict=conflict)
+                guide = args[5]
+                old_args = list(args[:6]) + list(args[7:])
+                if metric == "gray":
+                    old_args[5] = np.ascontiguousarray(guide[:, :, 0])
+                separate = expand_gray if metric == "gray" else expand_rgb
+                merged_out = np.empty((2, height, width), np.float32)
+                separate_out = np.empty((2, height, width), np.float32)
+                new_args = (*args[:-2], merged_out[0], merged_out[1])
+                old_args = (*old_args[:-2], separate_out[0], separate_out[1])
+                expand(*new_args)
+                separate(*old_args)
+                assert merged_out.tobytes() == separate_out.tobytes(), "merged kernel differs"
+                t = _interleaved_wall_and_cpu(
+                    {"merged": lambda a=new_args: expand(*a),
+                     "separate": lambda a=old_args, f=separate: f(*a)},
+                    repeat=repeat,
+                )  # fmt: skip
+                row = dict(size=f"{width}x{height}", guidance=metric, conflict=conflict,
+                           load=os.getloadavg()[0])  # fmt: skip
+                for clock in ("wall", "cpu"):
+                    row[f"merged_{clock}_ms"] = t["merged"][clock] * 1e3
+                    row[f"separate_{clock}_ms"] = t["separate"][clock] * 1e3
+                    row[f"ratio_{clock}"] = t["merged"][clock] / t["separate"][clock]
+                rows.append(row)
+                print(
+                    f"  {row['size']:>9} {metric:<4} {conflict:<14} merged/separate: wall "
+                    f"{row['merged_wall_ms']:7.3f}/{row['separate_wall_ms']:7.3f} ms = "
+                    f"{row['ratio_wall']:.3f}, thread CPU {row['merged_cpu_ms']:7.3f}/"
+                    f"{row['separate_cpu_ms']:7.3f} ms = {row['ratio_cpu']:.3f} | {load()}"
+                )
+    for metric in ("gray", "rgb"):
+        for clock in ("wall", "cpu"):
+            ratios = [r[f"ratio_{clock}"] for r in rows if r["guidance"] == metric]
+            mid = statistics.median(ratios)
+            verdict = "within 3 %" if mid <= 1.03 else "NOT within 3 %"
+            print(
+                f"  {metric}: merged/separate ({clock}) median {mid:.3f} ({verdict}), "
+                f"worst {max(ratios):.3f}"
+            )
+    return rows
+
+
+def _interleaved_wall_and_cpu(fns: dict, *, repeat: int, warmup: int = 2) -> dict:
+    """Median wall and thread-CPU seconds of each function, runs alternating (a b b a a b ...:
+    each goes first in half the rounds, so neither always finds the caches the other left).
+
+    The thread's CPU time counts only the cycles the kernel ran, not the time it waited for
+    a core: on a shared machine it is the steadier of the two.
+    """
+    for _ in range(warmup):
+        for fn in fns.values():
+            fn()
+    times = {name: {"wall": [], "cpu": []} for name in fns}
+    order = list(fns.items())
+    for i in range(repeat):
+        for name, fn in order if i % 2 == 0 else order[::-1]:
+            c0, t0 = time.thread_time(), time.perf_counter()
+            fn()
+            t1, c1 = time.perf_counter(), time.thread_time()
+            times[name]["wall"].append(t1 - t0)
+            times[name]["cpu"].append(c1 - c0)
+    return {
+        name: {clock: statistics.median(v) for clock, v in by_clock.items()}
+        for name, by_clock in times.items()
+    }
+
+
 def main() -> None:
+    if "--kernels" in sys.argv[1:]:
+        merged_vs_separate()
+        return
     with tempfile.TemporaryDirectory() as cache:
         imp, cold = first_call_seconds(cache)
         _, warm = first_call_seconds(cache)
@@ -199,6 +344,7 @@ def main() -> None:
     print(f"numpy reference single-threaded (one BLAS thread) | {load()}")
     for width, height in ((800, 450), (1600, 900)):
         bench_size(width, height)
+    merged_vs_separate()
 
 
 if __name__ == "__main__":

@@ -40,3 +40,19 @@ class WriteRandom:
 
 def crash(task):
     raise ZeroDivisionError("bug")
+
+
+@dataclass(frozen=True)
+class ChangeInput:
+    """Writes its output and (``change``) appends to its input file while it runs, as another
+    program writing the input at the same moment would."""
+
+    change: bool = True
+
+    def __call__(self, task):
+        with atomic_path(task.outputs["data"]) as tmp:
+            tmp.write_bytes(b"output")
+        if self.change:
+            with open(task.inputs.source, "ab") as fh:
+                fh.write(b"+")
+        return {}

@@ -334,15 +334,19 @@ def test_bad_arguments():
     two = np.array([np.eye(4), np.eye(4)])
     for kw, match in (
         ({"reference": 2}, "reference"),
-        ({"reference": 0, "moving_mask": np.zeros((10, 10), bool)}, "moving_mask"),
-        ({"reference": 0, "moving_mask": np.zeros((120, 160))}, "moving_mask"),
+        ({"reference": 0, "moving_mask": np.zeros((10, 10), bool)}, "--moving-mask: must have"),
+        ({"reference": 0, "moving_mask": np.zeros((120, 160))}, "--moving-mask: must be bool"),
         ({"reference": 0, "settings": {"occlusion_rel": 0.2}}, "settings"),
     ):
         with pytest.raises(ParameterError, match=match):
             accumulate_scans([pts, pts], two, CALIB, **kw)
-    with pytest.raises(ParameterError, match="pose"):
+    with pytest.raises(ParameterError, match=r"--T-world-from-velo: must have shape \(2, 4, 4\)"):
         accumulate_scans([pts, pts], two[:1], CALIB, reference=0)
-    with pytest.raises(ParameterError, match="scan 1"):
+    with pytest.raises(ParameterError, match="--T-world-from-velo: holds NaN"):
+        accumulate_scans([pts, pts], two * np.nan, CALIB, reference=0)
+    with pytest.raises(ParameterError, match="last row 0 0 0 1"):
+        accumulate_scans([pts, pts], two * 2, CALIB, reference=0)
+    with pytest.raises(ParameterError, match=r"--scans\[1\]: must have shape \(N, C>=3\)"):
         accumulate_scans([pts, pts[:, :2]], two, CALIB, reference=0)
     with pytest.raises(ParameterError, match="at least one"):
         accumulate_scans([], np.zeros((0, 4, 4)), CALIB, reference=0)

@@ -137,8 +137,12 @@ def test_bad_points_are_refused():
         select_beams(pts, np.zeros(pts.shape[0], int), n=1)
     with pytest.raises(ParameterError, match="shape"):
         recover_rings(np.zeros((5, 2)))
-    with pytest.raises(ParameterError, match="unknown ring method"):
+    with pytest.raises(ParameterError, match="--method: must be one of"):
         recover_rings(np.ones((3, 4)), method="magic")
+    with pytest.raises(ParameterError, match="--points: must be floating point"):
+        recover_rings(np.ones((3, 4), bool))
+    with pytest.raises(ParameterError, match="--n-lasers: must be >= 1 and <= 256"):
+        recover_rings(np.ones((3, 4)), n_lasers=300)
 
 
 def test_column_rings_flip_and_errors():
@@ -232,16 +236,26 @@ def test_select_beams_errors():
     few = np.isin(ring, [1, 2])
     with pytest.raises(ParameterError, match="only 2 rings"):
         select_beams(pts[few], ring[few], n=4)
-    with pytest.raises(ParameterError, match="0..63"):
+    with pytest.raises(ParameterError, match=r"--rings: values must lie in \[0, 63\]"):
         select_beams(pts, ring, rings=(70,))
-    with pytest.raises(ParameterError, match="ring values"):
+    with pytest.raises(
+        ParameterError, match=r"--ring: values must lie in \[0, 63\], got values in \[10, 73\]"
+    ):
         select_beams(pts, ring + 10, n=1)
+    with pytest.raises(ParameterError, match="--ring: must have shape"):
+        select_beams(pts, ring[:-1], n=1)
+    with pytest.raises(ParameterError, match="--ring: must be signed integer or unsigned"):
+        select_beams(pts, ring.astype(np.float32), n=1)
+    with pytest.raises(ParameterError, match="--ring-elevation-deg: must have shape \\(64\\)"):
+        select_beams(pts, ring, n=1, ring_elevation_deg=np.zeros(32))
     with pytest.raises(ParameterError, match="needs the calibration"):
         select_beams(pts, n=4, select="pl++")
-    with pytest.raises(ParameterError, match="unknown selection"):
+    with pytest.raises(ParameterError, match="--select: must be one of"):
         select_beams(pts, ring, n=4, select="random")
-    with pytest.raises(ParameterError, match="positive integer"):
+    with pytest.raises(ParameterError, match="--n: must be >= 1"):
         select_beams(pts, ring, n=0)
+    with pytest.raises(ParameterError, match="--n: must be an integer"):
+        select_beams(pts, ring, n=1.5)
     with pytest.raises(ParameterError, match="needs the ring"):
         select_beams(pts, n=4)
 
@@ -346,7 +360,11 @@ def test_pl_line_spec_and_errors():
         pl_line_spec(5)
     calib = kitti_like_calib()
     pts = np.ones((3, 4), np.float32)
-    for spec, msg in (((5, 5), "repeats"), ((64,), "0..63"), ((), "empty")):
+    for spec, msg in (
+        ((5, 5), "repeats"),
+        ((64,), r"--line-spec: values must lie in \[0, 63\]"),
+        ((), "--line-spec: must hold at"),
+    ):
         with pytest.raises(ParameterError, match=msg):
             pl_sparsify_index(
                 pts, projection=calib.projection, image_size=calib.size, line_spec=spec
@@ -381,11 +399,11 @@ def kitti_frames():
         pytest.skip("real data folder ../shared/data/real is absent")
     from sparsetools.io.calib import load_calibration
     from sparsetools.io.image import read_image
-    from sparsetools.pipeline.beams import read_cloud_strict
+    from sparsetools.io.pointcloud import read_points
 
     frames = {}
     for stem in STEMS:
-        pts = read_cloud_strict(KITTI / "velodyne" / f"{stem}.bin")
+        pts = read_points(KITTI / "velodyne" / f"{stem}.bin", strict=True)
         h, w = read_image(KITTI / "image_2" / f"{stem}.png").shape[:2]
         calib = load_calibration(KITTI / "calib" / f"{stem}.txt").with_size(w, h)
         frames[stem] = (pts, calib)
@@ -490,9 +508,9 @@ def test_real_nuscenes_ring_column():
     files = sorted(NUSCENES.glob("*.pcd.bin")) if NUSCENES.is_dir() else []
     if not files:
         pytest.skip("real data folder ../shared/data/real is absent")
-    from sparsetools.pipeline.beams import read_cloud_strict
+    from sparsetools.io.pointcloud import read_points
 
-    pts = read_cloud_strict(files[0])
+    pts = read_points(files[0], strict=True)
     ring = recover_rings(pts, n_lasers=32, method="column")
     np.testing.assert_array_equal(ring, 31 - pts[:, 4].astype(int))  # nuScenes: 0 = bottom
     table = ring_table(pts, ring)
@@ -516,9 +534,9 @@ def synthetic_scene(tmp_path_factory):
 
 
 def test_synthetic_scene_rings_equal_simulated_lasers(synthetic_scene):
-    from sparsetools.pipeline.beams import read_cloud_strict
+    from sparsetools.io.pointcloud import read_points
 
-    pts = read_cloud_strict(synthetic_scene / "velodyne" / "000000.bin")
+    pts = read_points(synthetic_scene / "velodyne" / "000000.bin", strict=True)
     truth = np.load(synthetic_scene / "velodyne_ring" / "000000.npy")
     ring, method = recover_rings_with_method(pts)
     assert method == "scan-order"

@@ -202,7 +202,7 @@ def test_8_bit_png_is_refused(tmp_path):
 @pytest.mark.parametrize(
     "args, code, match",
     [
-        (["--inversion-offset", "0.1"], 1, "must be > 0.2 m"),
+        (["--inversion-offset", "0.1"], 1, "--inversion-offset: must be a finite number > 0.2"),
         (["--inversion-offset", "-3"], 2, "--inversion-offset"),
         (["--max-depth", "-3"], 2, "--max-depth"),
         (["--method", "kriging"], 2, "--method"),

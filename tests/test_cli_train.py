@@ -7,9 +7,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch  # noqa: F401 - a required dependency of these tests
 from click.testing import CliRunner
-
-pytest.importorskip("torch")
 
 from sparsetools.cli.main import cli
 from sparsetools.io.image import write_depth_png
@@ -58,9 +57,11 @@ def test_train_then_eval(dataset, tmp_path):
     assert r.exit_code == 0, r.output
     for k in METRIC_NAMES:
         assert any(line.startswith(k + " ") for line in r.stdout.splitlines()), k
-    saved = json.loads((out / "eval_test.json").read_text())
+    # named after the dataset and split (another dataset's results get files of their own)
+    saved = json.loads((out / f"eval_{dataset.name}_test.json").read_text())
     assert set(METRIC_NAMES) <= set(saved["metrics"])
-    assert (out / "eval_test.csv").read_text().splitlines()[-1].startswith("mean,")
+    assert saved["run_id"] == config["run_id"] == summary["run_id"]
+    assert (out / f"eval_{dataset.name}_test.csv").read_text().splitlines()[-1].startswith("mean,")
 
     r = run(
         "eval",

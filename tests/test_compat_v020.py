@@ -114,3 +114,23 @@ def _unsubst(text: str, subs: dict[str, str]) -> str:
     for placeholder, path in subs.items():
         text = text.replace(placeholder, path)
     return text
+
+
+_RENAMED = sorted(n for n, c in CASES.items() if c["old"] != c["new"])
+
+
+@pytest.mark.parametrize("name", _RENAMED)
+def test_the_old_spellings_still_work_and_warn_once(name, data, tmp_path):
+    """0.2.0's spelling of each renamed option writes the same bytes, with one deprecation
+    line per old spelling used."""
+    case = _case(name)
+    out = tmp_path / name
+    r = CliRunner().invoke(cli, [*expand(case["old"], data, out), "--json"])
+    assert r.exit_code == 0, r.output
+    subs = substitutions(data, out)
+    assert digests(out, subs) == GOLDEN["cases"][name]["digests"]
+    warned = [ln for ln in r.stderr.splitlines() if "deprecated:" in ln]
+    old_only = [a for a in case["old"] if a.startswith("-") and a not in case["new"]]
+    crop = [a for a in case["old"] if "," in a and a.count(",") == 3]  # TOP,LEFT,H,W text
+    assert len(warned) == len(old_only) + len(crop), r.stderr
+    assert len(set(warned)) == len(warned)

@@ -123,8 +123,18 @@ def test_bad_input():
     img = images()[0]
     with pytest.raises(ParameterError, match="odd"):
         dark_channel(img, window=4)
-    with pytest.raises(ParameterError, match="RGB"):
+    with pytest.raises(ParameterError, match=r"--image: must have shape \(H, W, 3\)"):
         dark_channel(img[:, :, 0])
+    with pytest.raises(ParameterError, match="--image: must be uint8 or float32 or float64"):
+        dark_channel(img.astype(np.uint16))
+    with pytest.raises(ParameterError, match="--image: must be a numpy array"):
+        dark_channel(img.tolist())
+    with pytest.raises(ParameterError, match="--dark: is .* but image is"):
+        lddcv(img, dark=np.zeros((3, 3), np.float32))
+    with pytest.raises(ParameterError, match=r"--variation: must have shape \(H, W, 2\)"):
+        lddcv_mask(np.zeros((3, 3)))
+    with pytest.raises(ParameterError, match="--threshold: must be a finite number >= 0"):
+        lddcv_mask(lddcv(img), threshold=-1)
     with pytest.raises(ParameterError, match=r"\[0, 1\]"):
         dark_channel(img.astype(np.float32))
     nan = img.astype(np.float32) / 255
@@ -137,3 +147,20 @@ def test_bad_input():
         lddcv_mask(lddcv(img), combine="mean")
     with pytest.raises(ParameterError, match="empty"):
         dark_channel(np.zeros((0, 4, 3), np.uint8))
+
+
+def test_a_window_larger_than_the_image_is_bounded_by_it(monkeypatch):
+    """A window of 2 max(H, W) - 1 covers the image from every pixel: any larger one gives the
+    same map, and no kernel larger than that is built (30001 x 30001 bytes would be 900 MB)."""
+    import cv2
+
+    rng = np.random.default_rng(3)
+    image = rng.integers(0, 256, (32, 64, 3), dtype=np.uint8)
+    whole = dark_channel(image, window=127)
+    assert np.all(whole == whole.min())  # the whole image's minimum everywhere
+    sizes = []
+    make = cv2.getStructuringElement
+    monkeypatch.setattr(cv2, "getStructuringElement",
+                        lambda shape, size: sizes.append(size) or make(shape, size))  # fmt: skip
+    np.testing.assert_array_equal(dark_channel(image, window=30001), whole)
+    assert sizes and max(max(s) for s in sizes) <= 127

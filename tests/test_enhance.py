@@ -112,8 +112,12 @@ def test_constant_image_and_bad_input():
     lut = mcie_lut(flat)
     assert np.all(np.diff(lut.astype(int), axis=0) >= 0)
     np.testing.assert_array_equal(mcie_lut(flat, clip=1.0)[:, 0], np.arange(256))
-    with pytest.raises(ParameterError, match="8-bit"):
+    with pytest.raises(ParameterError, match="--reference: must be uint8"):
         mcie_lut(np.zeros((4, 4, 3), np.uint16))
+    with pytest.raises(ParameterError, match="--image: is empty"):
+        apply_lut(np.zeros((0, 4), np.uint8), np.zeros(256, np.uint8))
+    with pytest.raises(ParameterError, match=r"--lut: must have shape \(256, 3\)"):
+        apply_lut(flat, np.zeros((256, 2), np.uint8))
     with pytest.raises(ParameterError):
         mcie_lut(flat, clip=0)
     with pytest.raises(ParameterError):
@@ -164,7 +168,7 @@ def test_rnw_rounding_matches_its_description(clip):
     np.testing.assert_array_equal(
         mcie_lut(_images()[0]), mcie_lut(_images()[0], rounding="nearest")
     )
-    with pytest.raises(ParameterError, match="rounding"):
+    with pytest.raises(ParameterError, match="--rounding: must be one of nearest, rnw"):
         mcie_lut(_images()[0], rounding="floor")
 
 

@@ -277,7 +277,7 @@ def test_tables_keyframe_and_sweeps(tmp_path):
 
 
 def test_tables_missing_folder_and_table(tmp_path):
-    with pytest.raises(FormatError, match="check --version"):
+    with pytest.raises(FormatError, match="check --nuscenes-version"):
         NuScenesTables(tmp_path, "v1.0-mini")
     _write_tables(tmp_path)
     os.remove(tmp_path / "v1.0-mini" / "ego_pose.json")

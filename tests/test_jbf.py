@@ -9,6 +9,7 @@ candidates passing the threshold are collected and each pixel picks the best one
 from __future__ import annotations
 
 import math
+import re
 
 import cv2
 import numpy as np
@@ -334,7 +335,7 @@ def test_kernel_is_cached_on_disk():
     from sparsetools.ops import jbf
 
     # cache=True: a new process loads the machine code instead of compiling again.
-    for kernel in (jbf._expand_gray, jbf._expand_rgb, jbf._offset_table):
+    for kernel in (jbf.expand, jbf.band, jbf._offset_table):
         assert type(kernel._cache).__name__ != "NullCache"
 
 
@@ -348,46 +349,58 @@ def _ok():
 
 
 @pytest.mark.parametrize(
-    "change, message",
+    "change, param, message",
     [
-        (dict(guidance=np.zeros((10, 13, 3), np.uint8)), "same size"),
-        (dict(radar_depth=np.zeros((11, 12), np.float32)), "same size"),
-        (dict(fx=0.0), "fx"),
-        (dict(fy=-5.0), "fy"),
-        (dict(fx=float("nan")), "fx"),
-        (dict(sigma_s=0.0), "sigma_s"),
-        (dict(sigma_r=-1.0), "sigma_r"),
-        (dict(threshold=0.0), "threshold"),
-        (dict(threshold=1.5), "threshold"),
-        (dict(threshold=-0.1), "threshold"),
-        (dict(radar_depth=np.zeros((10, 12), np.uint8)), "8-bit"),
-        (dict(radar_depth=np.zeros((10, 12), np.uint16)), "float metres"),
-        (dict(radar_depth=np.zeros((10, 12, 1), np.float32)), "2-D"),
-        (dict(guidance=np.zeros((10, 12), np.float32)), "uint8"),
-        (dict(guidance=np.zeros((10, 12, 4), np.uint8)), "(H, W, 3)"),
-        (dict(kernel="box"), "kernel"),
-        (dict(conflict="farthest"), "conflict"),
-        (dict(range_metric="lab"), "range_metric"),
-        (dict(window_m=(0.0, 2.0)), "window"),
-        (dict(window_m=3.0), "window_m"),
+        (dict(guidance=np.zeros((10, 13, 3), np.uint8)), "guidance", "one shape"),
+        (dict(radar_depth=np.zeros((11, 12), np.float32)), "guidance", "one shape"),
+        (dict(fx=0.0), "fx", "> 0"),
+        (dict(fy=-5.0), "fy", "> 0"),
+        (dict(fx=float("nan")), "fx", "finite"),
+        (dict(sigma_s=0.0), "sigma_s", "> 0"),
+        (dict(sigma_r=-1.0), "sigma_r", "> 0"),
+        (dict(threshold=0.0), "threshold", "(0, 1]"),
+        (dict(threshold=1.5), "threshold", "(0, 1]"),
+        (dict(threshold=-0.1), "threshold", "(0, 1]"),
+        (dict(radar_depth=np.zeros((10, 12), np.uint8)), "radar_depth", "8-bit"),
+        (dict(radar_depth=np.zeros((10, 12), np.uint16)), "radar_depth", "float metres"),
+        (dict(radar_depth=np.zeros((10, 12), np.complex64)), "radar_depth", "floating point"),
+        (dict(radar_depth=np.zeros((10, 12, 1), np.float32)), "radar_depth", "(H, W)"),
+        (dict(guidance=np.zeros((10, 12), np.float32)), "guidance", "uint8"),
+        (dict(guidance=np.zeros((10, 12, 4), np.uint8)), "guidance", "(H, W, 3)"),
+        (dict(kernel="box"), "kernel", "one of"),
+        (dict(conflict="farthest"), "conflict", "one of"),
+        (dict(range_metric="lab"), "range_metric", "one of"),
+        (dict(window_m=(0.0, 2.0)), "window_m", "> 0"),
+        (dict(window_m=3.0), "window_m", "two numbers"),
+        (dict(threads=0), "threads", ">= 1"),
     ],
 )
-def test_bad_input_raises_parameter_error(change, message):
+def test_bad_input_raises_parameter_error(change, param, message):
     radar, guide = _ok()
     kw = dict(radar_depth=radar, guidance=guide, fx=10.0, fy=10.0)
     kw.update(change)
-    with pytest.raises(ParameterError, match=message.replace("(", r"\(").replace(")", r"\)")):
+    with pytest.raises(ParameterError, match=re.escape(message)) as e:
         jbf_expand(kw.pop("radar_depth"), kw.pop("guidance"), **kw)
+    # The parameter named as jbf_expand spells it; the command line shows it as an option.
+    assert e.value.param == param
+    assert str(e.value).startswith("--" + param.replace("_", "-") + ": ")
 
 
 def test_height_extend_bad_input():
     radar, _ = _ok()
     with pytest.raises(ParameterError, match="fy"):
         height_extend(radar, fy=0)
-    with pytest.raises(ParameterError, match="below_m"):
+    with pytest.raises(ParameterError, match="below-m"):
         height_extend(radar, fy=10, below_m=-1)
     with pytest.raises(ParameterError, match="8-bit"):
         height_extend(radar.astype(np.uint8), fy=10)
+
+
+def test_pruning_radius_bad_input():
+    with pytest.raises(ParameterError, match="sigma-s"):
+        pruning_radius(0.0, 0.05)
+    with pytest.raises(ParameterError, match="threshold"):
+        pruning_radius(25.0, 0.0)
 
 
 # -- height-extend ------------------------------------------------------------------------------

@@ -5,11 +5,10 @@ from __future__ import annotations
 import math
 
 import pytest
+import torch
 
-torch = pytest.importorskip("torch")
-
-from sparsetools.errors import ParameterError  # noqa: E402
-from sparsetools.train.losses import (  # noqa: E402
+from sparsetools.errors import ParameterError
+from sparsetools.train.losses import (
     berhu_loss,
     depth_loss,
     l1_loss,

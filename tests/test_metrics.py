@@ -200,12 +200,18 @@ def test_per_image_average_differs_from_pooled():
 
 
 def test_bad_input():
-    with pytest.raises(ParameterError, match="differ"):
+    with pytest.raises(ParameterError, match="--pred: is .* but gt is .*one shape"):
         depth_metrics(np.ones((3, 4)), np.ones((4, 3)))
     with pytest.raises(ParameterError, match=r"\(H, W\)"):
         depth_metrics(np.ones((1, 3, 4)), np.ones((1, 3, 4)))
-    with pytest.raises(ParameterError, match="min_depth"):
+    with pytest.raises(ParameterError, match="--max-depth.* must be > --min-depth"):
         depth_metrics(np.ones((3, 4)), np.ones((3, 4)), min_depth=10, max_depth=5)
+    with pytest.raises(ParameterError, match="--min-depth: must be a finite number > 0"):
+        depth_metrics(np.ones((3, 4)), np.ones((3, 4)), min_depth=0)
+    with pytest.raises(ParameterError, match="--max-depth: must be a finite number > 0"):
+        depth_metrics(np.ones((3, 4)), np.ones((3, 4)), max_depth=np.inf)
+    with pytest.raises(ParameterError, match="--gt: must be floating point"):
+        depth_metrics(np.ones((3, 4)), np.ones((3, 4), bool))
     pred = np.full((2, 2), 5.0)
     pred[0, 1] = np.nan
     with pytest.raises(ParameterError, match="NaN"):

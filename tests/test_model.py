@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import pytest
+import torch
 
-torch = pytest.importorskip("torch")
-
-from sparsetools.errors import ParameterError  # noqa: E402
-from sparsetools.train.model import (  # noqa: E402
+from sparsetools.errors import ParameterError
+from sparsetools.train.model import (
     INPUT_CHANNELS,
     DepthCompletionUNet,
     build_model,

@@ -386,16 +386,20 @@ def test_bad_arguments_raise_parameter_error():
         project_points(np.zeros((3, 2)), calib)
     with pytest.raises(ParameterError, match="points"):
         project_points(np.zeros(3), calib)
-    with pytest.raises(ParameterError, match="min_depth"):
+    with pytest.raises(ParameterError, match="min-depth"):
         project_points(pts, calib, min_depth=-1)
-    with pytest.raises(ParameterError, match="max_depth"):
+    with pytest.raises(ParameterError, match="max-depth.*min-depth"):
         project_points(pts, calib, min_depth=2, max_depth=1)
+    with pytest.raises(ParameterError, match="max-depth"):
+        project_points(pts, calib, max_depth=float("nan"))
     with pytest.raises(ParameterError, match="image size"):
         project_points(pts, Calibration(K=np.eye(3), T_cam_from_sensor=np.eye(4)))
     with pytest.raises(ParameterError, match="Calibration"):
         project_points(pts, np.eye(3))
-    with pytest.raises(ParameterError, match="pixel_offset"):
+    with pytest.raises(ParameterError, match="pixel-offset"):
         project_points(pts, calib, pixel_offset=0.5)
+    with pytest.raises(ParameterError, match="points.*numbers|points.*floating"):
+        project_points(np.zeros((3, 3), bool), calib)
 
 
 def test_sparse_from_depth_round_trip():

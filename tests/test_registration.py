@@ -118,8 +118,10 @@ def test_bad_arguments():
         icp_pose(pts[:5], pts)
     with pytest.raises(ParameterError, match="beyond min_range"):
         icp_pose(pts, pts, min_range=100.0)
-    with pytest.raises(ParameterError, match="target_points"):
+    with pytest.raises(ParameterError, match="--target-points: must have shape"):
         icp_pose(pts, pts[:, :2])
+    with pytest.raises(ParameterError, match="--init: holds NaN"):
+        icp_pose(pts, pts, init=np.full((4, 4), np.nan))
     with pytest.raises(ParameterError, match="rigid"):
         icp_pose(pts, pts, init=np.diag([2.0, 1, 1, 1]))
     for kw in ({"voxel": 0}, {"max_distance": -1}, {"max_iterations": 0}, {"tukey_k": np.nan}):
@@ -136,3 +138,14 @@ def test_missing_open3d_is_a_dependency_error(monkeypatch):
     pts = np.random.default_rng(0).normal(size=(100, 3))
     with pytest.raises(DependencyError, match="Open3D"):
         icp_pose(pts, pts)
+
+
+def test_scans_open3d_cannot_register_are_a_clear_error_not_an_internal_one():
+    """Open3D refuses clouds spread over 1e30 m (its voxel grid overflows): one ParameterError
+    naming why, never Open3D's RuntimeError (which the command line reports as a bug)."""
+    from sparsetools.errors import ParameterError
+    from sparsetools.ops.registration import icp_pose
+
+    far = np.random.default_rng(0).normal(size=(100, 3)) * 1e30
+    with pytest.raises(ParameterError, match="ICP cannot register these scans: voxel_size"):
+        icp_pose(far, far)

@@ -4,21 +4,20 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
-torch = pytest.importorskip("torch")
-
-from sparsetools.errors import FormatError, ParameterError  # noqa: E402
-from sparsetools.io.dataset_reader import DatasetReader  # noqa: E402
-from sparsetools.ops.enhance import apply_lut, mcie_lut  # noqa: E402
-from sparsetools.train.data import collate  # noqa: E402
-from sparsetools.train.selfsup.data import (  # noqa: E402
+from sparsetools.errors import FormatError, ParameterError
+from sparsetools.io.dataset_reader import DatasetReader
+from sparsetools.ops.enhance import apply_lut, mcie_lut
+from sparsetools.train.data import collate
+from sparsetools.train.selfsup.data import (
     TripletDataset,
     frame_poses,
     frame_triplets,
     natural_key,
     sequence_frames,
 )
-from test_selfsup_scene import video, write_video_dataset  # noqa: E402
+from test_selfsup_scene import video, write_video_dataset
 
 
 @pytest.fixture(scope="module")

@@ -6,17 +6,16 @@ import math
 
 import numpy as np
 import pytest
+import torch
 
-torch = pytest.importorskip("torch")
-
-from sparsetools.errors import ParameterError  # noqa: E402
-from sparsetools.train.evaluate import EvalResult  # noqa: E402
-from sparsetools.train.selfsup.pose_eval import (  # noqa: E402
+from sparsetools.errors import ParameterError
+from sparsetools.train.evaluate import EvalResult
+from sparsetools.train.selfsup.pose_eval import (
     evaluate_pose,
     snippet_ate,
     snippet_positions,
 )
-from test_selfsup_scene import video, write_video_dataset  # noqa: E402
+from test_selfsup_scene import video, write_video_dataset
 
 
 def translation(x, y, z):

@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
-torch = pytest.importorskip("torch")
-
-from sparsetools.errors import ParameterError  # noqa: E402
-from sparsetools.train.selfsup.geometry import (  # noqa: E402
+from sparsetools.errors import ParameterError
+from sparsetools.train.selfsup.geometry import (
     axis_angle_to_matrix,
     backproject,
     invert_transform,
@@ -17,8 +16,8 @@ from sparsetools.train.selfsup.geometry import (  # noqa: E402
     project,
     warp_frame,
 )
-from sparsetools.train.selfsup.pose_net import POSE_SCALE, PoseNet, source_transforms  # noqa: E402
-from test_selfsup_scene import intrinsics, pose, render, video  # noqa: E402
+from sparsetools.train.selfsup.pose_net import POSE_SCALE, PoseNet, source_transforms
+from test_selfsup_scene import intrinsics, pose, render, video
 
 
 def rodrigues_reference(v: np.ndarray) -> np.ndarray:
@@ -285,7 +284,8 @@ def test_video_helper_frames_reconstruct_with_true_poses():
 def test_true_depth_and_pose_reconstruct_a_synthetic_video_frame():
     """The same with the street-video generator (sparsetools.synth.video): static pixels that
     the source sees unoccluded are reconstructed to rendering noise."""
-    video_mod = pytest.importorskip("sparsetools.synth.video")
+    from sparsetools.synth import video as video_mod
+
     seq = video_mod.simulate_video(3, n_frames=3, image_size=(208, 64), lidar=False)
     t, s = seq.frames[1], seq.frames[2]
     h, w = t.depth.shape

@@ -6,27 +6,26 @@ import math
 
 import numpy as np
 import pytest
+import torch
 
-torch = pytest.importorskip("torch")
-
-from sparsetools.errors import ParameterError  # noqa: E402
-from sparsetools.train.config import SelfSupSettings  # noqa: E402
-from sparsetools.train.losses import l1_loss  # noqa: E402
-from sparsetools.train.selfsup.geometry import warp_frame  # noqa: E402
-from sparsetools.train.selfsup.losses import selfsup_loss  # noqa: E402
-from sparsetools.train.selfsup.masks import (  # noqa: E402
+from sparsetools.errors import ParameterError
+from sparsetools.train.config import SelfSupSettings
+from sparsetools.train.losses import l1_loss
+from sparsetools.train.selfsup.geometry import warp_frame
+from sparsetools.train.selfsup.losses import selfsup_loss
+from sparsetools.train.selfsup.masks import (
     StatisticsMask,
     auto_mask,
     percentile,
     temporal_change,
 )
-from sparsetools.train.selfsup.photometric import (  # noqa: E402
+from sparsetools.train.selfsup.photometric import (
     photometric_error,
     ssim,
     ssim_dissimilarity,
 )
-from sparsetools.train.selfsup.smoothness import edge_aware_smoothness  # noqa: E402
-from test_selfsup_scene import video  # noqa: E402
+from sparsetools.train.selfsup.smoothness import edge_aware_smoothness
+from test_selfsup_scene import video
 
 
 def ssim_reference(a: np.ndarray, b: np.ndarray) -> np.ndarray:

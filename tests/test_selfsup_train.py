@@ -7,20 +7,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
+from click.testing import CliRunner
 
-torch = pytest.importorskip("torch")
-
-from click.testing import CliRunner  # noqa: E402
-
-from sparsetools.cli.main import cli  # noqa: E402
-from sparsetools.errors import ParameterError  # noqa: E402
-from sparsetools.ops.metrics import METRIC_NAMES  # noqa: E402
-from sparsetools.train.checkpoint import load_checkpoint  # noqa: E402
-from sparsetools.train.config import SelfSupSettings, TrainConfig  # noqa: E402
-from sparsetools.train.evaluate import evaluate_checkpoint  # noqa: E402
-from sparsetools.train.loop import train  # noqa: E402
-from test_selfsup_scene import video, write_video_dataset  # noqa: E402
-from test_train import read_rows, state_equal  # noqa: E402
+from sparsetools.cli.main import cli
+from sparsetools.errors import ParameterError
+from sparsetools.ops.metrics import METRIC_NAMES
+from sparsetools.train.checkpoint import load_checkpoint
+from sparsetools.train.config import SelfSupSettings, TrainConfig
+from sparsetools.train.evaluate import evaluate_checkpoint
+from sparsetools.train.loop import train
+from test_selfsup_scene import video, write_video_dataset
+from test_train import read_rows, state_equal
 
 
 @pytest.fixture(scope="module")
@@ -202,7 +200,7 @@ def test_cli_train_and_eval(dataset, tmp_path):
     assert "median" in r.output and "pose ATE" in r.output
     for name in METRIC_NAMES:  # every metric of ops.metrics, log10 (BTS) included when present
         assert name in r.output
-    data = json.loads((run / "eval_test.json").read_text())
+    data = json.loads((run / f"eval_{Path(dataset).name}_test.json").read_text())
     assert data["median_scaling"] is True and data["kind"] == "self-supervised"
     assert data["pose"]["snippet_length"] == 5
     r = runner.invoke(

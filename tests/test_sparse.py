@@ -144,8 +144,12 @@ def test_bad_shapes_and_coords():
         sparse_to_dense(coords[:1], np.ones((1, 2)), (1, 3, 4))
     with pytest.raises(ParameterError, match="coords"):
         sparse_to_dense(np.zeros((2, 2)), feats, (1, 3, 4))
-    with pytest.raises(ParameterError, match="integers"):
+    with pytest.raises(ParameterError, match="--coords: must be signed integer"):
         sparse_to_dense(np.zeros((2, 3)), feats, (1, 3, 4))
+    with pytest.raises(ParameterError, match=r"--shape: must have shape \(B, H, W\)"):
+        sparse_to_dense(coords, feats, (3, 4))
+    with pytest.raises(ParameterError, match=r"--batch: must have shape \(B, H, W\)"):
+        dense_to_sparse(np.zeros((4, 4)))
 
 
 def without_empty_negative_zero(x: np.ndarray, channels_last: bool) -> np.ndarray:

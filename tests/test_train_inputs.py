@@ -12,20 +12,19 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-torch = pytest.importorskip("torch")
+import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from click.testing import CliRunner  # noqa: E402
+from click.testing import CliRunner
 
-from sparsetools.cli.main import cli  # noqa: E402
-from sparsetools.errors import ParameterError  # noqa: E402
-from sparsetools.io.image import write_depth_png, write_image  # noqa: E402
-from sparsetools.train.checkpoint import load_checkpoint, model_from_checkpoint  # noqa: E402
-from sparsetools.train.config import SelfSupSettings, TrainConfig  # noqa: E402
-from sparsetools.train.data import DepthDataset, augment_sample, collate  # noqa: E402
-from test_real_trees import raw_root  # noqa: E402, F401  (the KITTI raw date folder fixture)
+from sparsetools.cli.main import cli
+from sparsetools.errors import ParameterError
+from sparsetools.io.image import write_depth_png, write_image
+from sparsetools.train.checkpoint import load_checkpoint, model_from_checkpoint
+from sparsetools.train.config import SelfSupSettings, TrainConfig
+from sparsetools.train.data import DepthDataset, augment_sample, collate
+from test_real_trees import raw_root  # noqa: F401  (the KITTI raw date folder fixture)
 
 TINY = ["--width", "4", "--epochs", "1", "--threads", "1", "--pictures", "1"]
 

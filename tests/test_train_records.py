@@ -5,19 +5,18 @@ from __future__ import annotations
 import math
 
 import pytest
+import torch
 
-torch = pytest.importorskip("torch")
-
-from sparsetools.errors import FormatError, ParameterError  # noqa: E402
-from sparsetools.train.checkpoint import (  # noqa: E402
+from sparsetools.errors import FormatError, ParameterError
+from sparsetools.train.checkpoint import (
     BestRecord,
     TrainingState,
     load_checkpoint,
     save_checkpoint,
 )
-from sparsetools.train.config import SelfSupSettings, TrainConfig, resumed_config  # noqa: E402
-from sparsetools.train.model import DepthCompletionUNet  # noqa: E402
-from sparsetools.train.selfsup.pose_net import PoseNet  # noqa: E402
+from sparsetools.train.config import SelfSupSettings, TrainConfig, resumed_config
+from sparsetools.train.model import DepthCompletionUNet
+from sparsetools.train.selfsup.pose_net import PoseNet
 
 
 def test_config_round_trip_with_and_without_selfsup():

@@ -152,7 +152,7 @@ def test_invalid_mask_where_factor_is_small():
 
 def test_segments_give_the_single_pass_result():
     """Processing [lo, hi) with ``emit`` equals the full pass, as the CLI's segments rely on."""
-    from sparsetools.pipeline.underwater import underwater_tasks
+    from sparsetools.pipeline.underwater import segment_tasks
 
     seafloor, water = _random_sequence(T=23, seed=5)
     full_comp = UnderwaterCompensator(water, window=7)
@@ -160,7 +160,7 @@ def test_segments_give_the_single_pass_result():
     from sparsetools.io.sources import Frame, FrameKey
 
     frames = [Frame(FrameKey("", f"{i:03d}"), image=Path(f"{i:03d}.png")) for i in range(23)]
-    tasks = underwater_tasks(frames, "out", window=7, a_ref=(1.0, 1.0, 1.0))
+    tasks = segment_tasks(frames, Path("out"), window=7, a_ref=(1.0, 1.0, 1.0))
     import sparsetools.pipeline.underwater as uw
 
     seg = uw.segment_length(7)
@@ -265,13 +265,19 @@ def test_bad_inputs():
         list(UnderwaterCompensator(water, window=5).process(seafloor))
     with pytest.raises(ParameterError, match="no water-only frames"):
         UnderwaterCompensator([], window=3)
-    with pytest.raises(ParameterError, match="odd"):
+    with pytest.raises(ParameterError, match="--window: must be odd"):
         UnderwaterCompensator(water, window=4)
-    with pytest.raises(ParameterError):
+    with pytest.raises(ParameterError, match="--window: must be >= 1 and <= 65535"):
+        UnderwaterCompensator(water, window=65537)
+    with pytest.raises(ParameterError, match="--eps: must be a finite number > 0"):
         UnderwaterCompensator(water, window=3, eps=0)
+    with pytest.raises(ParameterError, match=r"--water-frames\[1\]: must have shape"):
+        UnderwaterCompensator([water[0], water[1][:5]], window=3)
+    with pytest.raises(ParameterError, match="--backscatter: holds NaN"):
+        UnderwaterCompensator.from_backscatter(np.full((4, 4, 3), np.nan), window=3)
     with pytest.raises(ParameterError):
         UnderwaterCompensator(water, window=3, a_ref=[1.0, -2.0, 3.0])
-    with pytest.raises(ParameterError, match="frame 2"):
+    with pytest.raises(ParameterError, match=r"--frames\[2\]: must have shape"):
         frames = [seafloor[0], seafloor[1], seafloor[2][:5]]
         list(UnderwaterCompensator(water, window=3).process(frames))
     mixed = [seafloor[0], seafloor[1], seafloor[2].astype(np.uint16)]

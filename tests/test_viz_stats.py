@@ -180,11 +180,11 @@ def test_depth_panels_single_and_stacked():
     assert wide.shape[1] == 2 * 80 + 4 and wide.shape[0] > 40
     black = depth_panels(None, [d], dilate=0, with_colorbar=False)
     assert black[0, 0].tolist() == [0, 0, 0] and black[10, 20].tolist() != [0, 0, 0]
-    with pytest.raises(ParameterError, match="same size"):
+    with pytest.raises(ParameterError, match="one shape"):
         depth_panels(img, [d, np.zeros((41, 80))])
     with pytest.raises(ParameterError, match="label"):
         depth_panels(img, [d], labels=["a", "b"])
-    with pytest.raises(ParameterError, match="image is"):
+    with pytest.raises(ParameterError, match="image: is .* one shape"):
         depth_panels(img[:30], [d])
 
 

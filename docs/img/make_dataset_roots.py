@@ -45,7 +45,9 @@ def row(ds: Path, title: str, width: int) -> np.ndarray:
     gt = depth_panels(s["rgb"], [s["gt"]], dilate=1, with_colorbar=False)
     panels = [
         label_panel(s["rgb"], f"{title}: {s['id'][:40]}", scale=1.2),
-        label_panel(sparse, f"{r['source']}: {r['n_sparse']} px ({100 * r['density']:.2f} %)", scale=1.2),
+        label_panel(
+            sparse, f"{r['source']}: {r['n_sparse']} px ({100 * r['density']:.2f} %)", scale=1.2
+        ),
         label_panel(gt, f"ground truth: {r['n_gt']} px", scale=1.2),
     ]
     panels = [cv2.resize(p, (width, round(p.shape[0] * width / p.shape[1]))) for p in panels]
@@ -74,7 +76,9 @@ def main() -> None:
         grid = side_by_side([grid, colorbar(grid.shape[1], max_depth=80)], vertical=True)
         small = cv2.resize(grid, None, fx=0.75, fy=0.75, interpolation=cv2.INTER_AREA)
         out = IMG / "dataset_roots.png"
-        cv2.imwrite(str(out), np.ascontiguousarray(small[:, :, ::-1]), [cv2.IMWRITE_PNG_COMPRESSION, 9])
+        cv2.imwrite(
+            str(out), np.ascontiguousarray(small[:, :, ::-1]), [cv2.IMWRITE_PNG_COMPRESSION, 9]
+        )
         print(f"{out.relative_to(ROOT)}: {small.shape[1]}x{small.shape[0]}")
 
 

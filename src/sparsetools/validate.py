@@ -13,7 +13,8 @@ Where each kind of check lives (DESIGN.md, "one validation vocabulary"):
 - settings records validate their values once, in ``__post_init__``, with the ``check_*``
   functions;
 - ``ops/`` checks arrays at its public boundary with :func:`check_array`,
-  :func:`check_shape`, :func:`check_dtype` and :func:`check_all_finite`.
+  :func:`check_shape`, :func:`check_dtype`, :func:`check_all_finite`, :func:`check_points`
+  and :func:`check_values` (``tests/test_architecture_ops.py`` holds it to that).
 
 The syntaxes every command shares are defined here once: a size is ``WxH`` (``1242x375``), a
 crop box is ``WxH+LEFT+TOP`` (``800x350+0+100``, ImageMagick's geometry), a pair or range is
@@ -38,16 +39,21 @@ __all__ = [
     "check_choice",
     "check_dtype",
     "check_finite",
+    "check_flag",
+    "check_instance",
     "check_int_range",
     "check_non_negative",
+    "check_nonempty",
     "check_odd",
     "check_ordered",
     "check_pair",
+    "check_points",
     "check_positive",
     "check_probability",
     "check_range",
     "check_same_shape",
     "check_shape",
+    "check_values",
     "format_crop",
     "is_legacy_crop",
     "parse_crop",
@@ -189,6 +195,22 @@ def check_choice(value, name: str, choices: Iterable[str]) -> str:
     return value
 
 
+def check_flag(value, name: str) -> bool:
+    """``value`` as a bool when it is one (``True``/``False`` or a numpy bool; not 0, 1 or a
+    string, which would read as a flag by accident)."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise ParameterError(f"must be True or False, got {value!r}", param=name)
+    return bool(value)
+
+
+def check_instance(value, name: str, types: type | tuple[type, ...]):
+    """``value`` when it is an instance of ``types`` (a settings record, a calibration...)."""
+    if not isinstance(value, types):
+        want = " or ".join(t.__name__ for t in (types if isinstance(types, tuple) else (types,)))
+        raise ParameterError(f"must be a {want}, got {type(value).__name__}", param=name)
+    return value
+
+
 def check_ordered(low, high, low_name: str, high_name: str) -> None:
     """``high > low`` for a pair of settings (``max_depth`` above ``min_depth``); either may be
     None (no bound)."""
@@ -312,7 +334,9 @@ def check_shape(a, spec: str, name: str, *, nonempty: bool = False) -> dict[str,
         raise ParameterError(
             f"must be an array of shape {spec}, got {type(a).__name__}", param=name
         )
-    shape = tuple(int(n) for n in shape)
+    # A list, not a generator: tuple(generator) over-allocates then shrinks, and CPython's
+    # tuple free list keeps each shrunk block (a per-frame check would grow memory to ~100 KB).
+    shape = tuple([int(n) for n in shape])
     for dims in _parse_shape_spec(spec):
         sizes = _match_shape(shape, dims)
         if sizes is not None:
@@ -365,6 +389,55 @@ def check_same_shape(a, b, name_a: str, name_b: str, *, dims: int | None = None)
         raise ParameterError(
             f"is {sa} but {name_b} is {sb}: they must have one shape", param=name_a
         )
+
+
+def _fmt_value(v) -> str:
+    return str(int(v)) if float(v).is_integer() and abs(v) < 1e15 else f"{float(v):.4g}"
+
+
+def check_values(a, name: str, *, low: float | None = None, high: float | None = None) -> None:
+    """Every value of the array ``a`` lies in ``[low, high]`` (either bound optional); NaN
+    never does. An empty array passes."""
+    arr = np.asarray(a)
+    if arr.size == 0:
+        return
+    lo, hi = arr.min(), arr.max()
+    if (low is None or lo >= low) and (high is None or hi <= high):
+        return
+    got = f"got values in [{_fmt_value(lo)}, {_fmt_value(hi)}]"
+    if low is not None and high is not None:
+        want = f"lie in [{_fmt_value(low)}, {_fmt_value(high)}]"
+    elif low is not None:
+        want, got = f"be >= {_fmt_value(low)}", f"got a minimum of {_fmt_value(lo)}"
+    else:
+        want, got = f"be <= {_fmt_value(high)}", f"got a maximum of {_fmt_value(hi)}"
+    raise ParameterError(f"values must {want}, {got}", param=name)
+
+
+def check_nonempty(items, name: str) -> None:
+    """``items`` (a sequence: scans, sweeps, panels, rings...) holds at least one element."""
+    if len(items) == 0:
+        raise ParameterError("must hold at least one item, got none", param=name)
+
+
+def check_points(a, name: str = "points", *, nonempty: bool = False) -> int:
+    """``a`` is a point cloud: an (N, C) array of real numbers with C >= 3 and x, y, z in its
+    first three columns; returns C. With ``nonempty``, also refuse a cloud with no point.
+
+    The array is not converted (``np.asarray`` a list before) and its values are not looked
+    at: whether NaN coordinates are an error depends on the operation.
+    """
+    if not hasattr(a, "shape"):
+        raise ParameterError(f"must be an (N, C>=3) array, got {type(a).__name__}", param=name)
+    shape = tuple([int(n) for n in a.shape])  # a list: see check_shape
+    if len(shape) != 2 or shape[1] < 3:
+        raise ParameterError(
+            f"must have shape (N, C>=3) with x, y, z first, got {shape}", param=name
+        )
+    check_dtype(a, name, "fiu")
+    if nonempty and shape[0] == 0:
+        raise ParameterError("has no points", param=name)
+    return int(shape[1])
 
 
 # -- text syntaxes -------------------------------------------------------------------------------

@@ -13,12 +13,10 @@ import time
 
 import pytest
 
-torch = pytest.importorskip("torch")
-
-from _processes import alive, children  # noqa: E402
-from sparsetools.train import runtime  # noqa: E402
-from sparsetools.train.runtime import make_loader, usable_loader_workers  # noqa: E402
-from test_train import make_dataset  # noqa: E402
+from _processes import alive, children
+from sparsetools.train import runtime
+from sparsetools.train.runtime import make_loader, usable_loader_workers
+from test_train import make_dataset
 
 
 def test_loader_workers_are_capped_with_one_warning(caplog, monkeypatch):

@@ -7,7 +7,14 @@ from pathlib import Path
 import click
 
 from ..ops.enhance import ROUNDINGS
-from .options import batch_options, deprecated, emit_summary, output_dir_option, positive
+from .options import (
+    batch_options,
+    build,
+    deprecated,
+    emit_summary,
+    output_dir_option,
+    positive,
+)
 
 
 @click.command("equalize")
@@ -19,7 +26,8 @@ from .options import batch_options, deprecated, emit_summary, output_dir_option,
     default=0.004,
     show_default=True,
     callback=positive,
-    help="Histogram clip limit as a fraction of the pixel count (RobotCar: 0.008).",
+    help="Histogram clip limit as a fraction of the pixel count, in (0, 1] (RobotCar: 0.008; "
+    "1: no clipping).",
 )
 @click.option(
     "--reference-frame",
@@ -65,7 +73,8 @@ def equalize(
     from ..pipeline import run_job
     from ..pipeline.equalize import EqualizeJob, EqualizeSettings
 
-    settings = EqualizeSettings(clip=clip, reference=reference_frame or "", rounding=rounding)
+    settings = build(EqualizeSettings, clip=clip, reference=reference_frame or "",
+                     rounding=rounding)  # fmt: skip
     ref_file = reference_frame if reference_frame and Path(reference_frame).is_file() else None
     summary = run_job(EqualizeJob(settings), image_frames(images), out_dir, batch=batch,
                       inputs=[*images, ref_file])  # fmt: skip

@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 import click
+from click.core import ParameterSource
 
 from .options import (
     batch_size_option,
@@ -22,21 +23,27 @@ from .options import (
 from .train import progress_wanted
 
 
-def _result_files(output: Path, checkpoint: Path | None, *, overwrite: bool) -> list:
+def _result_files(output: Path, target, checkpoint: Path | None, *, overwrite: bool) -> list:
     """The JSON and CSV results as :class:`~sparsetools.pipeline.provenance.OutputFile`, checked
-    before anything is evaluated: a file that ``eval`` did not write is refused (one line
-    naming it and ``--overwrite``); ``eval``'s own earlier results are replaced."""
+    before anything is evaluated: a file that ``eval`` did not write, or that holds the results
+    of another evaluation (``target``: another checkpoint, dataset, split or prediction folder),
+    is refused (one line naming it and ``--overwrite``); ``eval``'s own earlier results of the
+    same target are replaced, whatever protocol options made them."""
     from ..pipeline.provenance import OutputFile
     from ..train.results import eval_result_paths
 
     sources = [] if checkpoint is None else [checkpoint]
-    # no settings: a new evaluation replaces eval's own results whatever its options
     files = [
-        OutputFile(p, "eval", {}, sources, overwrite=overwrite) for p in eval_result_paths(output)
+        OutputFile(p, "eval", target, sources, overwrite=overwrite, noun="the results of an eval")
+        for p in eval_result_paths(output)
     ]
     for f in files:
-        f.up_to_date()  # raises for a file eval did not write
+        f.up_to_date()  # raises for a file eval did not write, or wrote for another target
     return files
+
+
+def _absolute(path: Path) -> str:
+    return str(Path(path).resolve())
 
 
 @click.command("eval")
@@ -52,9 +59,25 @@ def _result_files(output: Path, checkpoint: Path | None, *, overwrite: bool) -> 
     "--pred",
     "pred_dir",
     type=click.Path(exists=True, file_okay=False, path_type=Path),
-    help="Folder of predicted depth maps (KITTI uint16 PNG or .npy metres).",
+    help="Predicted depth maps (KITTI uint16 PNG or .npy metres): a flat folder or a sequence "
+    "tree PRED/<sequence>/<frame>.png (what sparsetools commands write).",
 )
-@gt_option(dest="gt_dir", help="Folder of ground-truth depth maps, matched to --pred by file stem.")
+@click.option(
+    "--fill",
+    type=click.Choice(["none", "nearest", "min-depth"]),
+    default="none",
+    show_default=True,
+    help="--pred: how prediction holes (0, NaN: no value where the ground truth has one) are "
+    "scored: none = left out of the metrics; nearest = the nearest predicted value; min-depth "
+    "= as --min-depth (monodepth2's clipping). Always counted (n_holes) and named in the "
+    "results.",
+)
+@gt_option(
+    dest="gt_dir",
+    help="Ground-truth depth maps: a flat folder, a sequence tree GT/<sequence>/<frame>.png, a "
+    "folder written by sparsetools or a KITTI depth-completion tree; matched to --pred by "
+    "(sequence, frame).",
+)
 @split_option(default="test", help="Split of DATASET evaluated with --checkpoint.")
 @click.option("--garg-crop", is_flag=True, help="Evaluate inside the Garg crop only (KITTI Eigen).")
 @min_depth_option(default=1e-3, help="Ground truth at or below this (m) is not evaluated.")
@@ -74,16 +97,20 @@ def _result_files(output: Path, checkpoint: Path | None, *, overwrite: bool) -> 
     required=False,
     file=True,
     help="Results file (.json or .csv; both are written). Default with --checkpoint: "
-    "eval_<split>.json/.csv next to it; with --pred: none. A file eval did not write is "
-    "refused unless --overwrite.",
+    "eval_<dataset folder name>_<split>.json/.csv next to it (+ _<checkpoint name> for "
+    "another checkpoint than best.pt); with --pred: none. A file eval did not write, or wrote "
+    "for another checkpoint, dataset, split or --pred/--gt, is refused unless --overwrite.",
 )
-@overwrite_option(help="Replace result files that eval did not write.")
+@overwrite_option(
+    help="Replace result files that eval did not write, or wrote for another evaluation."
+)
 @json_option(help="Print the results as JSON.")
 @quiet_debug_options
 def eval_(
     dataset,
     checkpoint,
     pred_dir,
+    fill,
     gt_dir,
     split,
     garg_crop,
@@ -103,13 +130,26 @@ def eval_(
     for self-supervised models on sequences with true poses, also the pose ATE. --checkpoint
     needs PyTorch; --pred/--gt does not.
 
+    --pred/--gt match frames by (sequence, frame) in flat folders, sequence trees and KITTI
+    depth-completion trees: a ground-truth frame without a prediction is refused (the first
+    names of both sides), predictions without ground truth are counted and named. Prediction
+    holes are counted and scored as --fill says.
+
     \b
     Examples:
       sparsetools eval --checkpoint out/run/best.pt out/ds --split test
       sparsetools eval --pred results/depth --gt out/scene/depth_gt -o results/metrics.json
+      sparsetools eval --pred results/depth --gt kitti_dc/val --fill nearest
     """
     if checkpoint is not None and (pred_dir is not None or gt_dir is not None):
         raise click.UsageError("give either --checkpoint with DATASET, or --pred with --gt")
+    ctx = click.get_current_context()
+    fill_given = ctx.get_parameter_source("fill") not in (None, ParameterSource.DEFAULT)
+    if checkpoint is not None and fill_given:
+        raise click.UsageError(
+            "--fill is for --pred: a network predicts every pixel (its predictions are clipped "
+            "to [--min-depth, --max-depth])"
+        )
     if checkpoint is None and pred_dir is None:
         raise click.UsageError("give --checkpoint RUN/best.pt DATASET, or --pred DIR --gt DIR")
     from ..errors import ParameterError
@@ -127,10 +167,14 @@ def eval_(
 
         require_torch("eval --checkpoint")
         from ..train.evaluate import evaluate_checkpoint
+        from ..train.results import EvalTarget, checkpoint_eval_path
 
         ckpt_file = checkpoint / "best.pt" if checkpoint.is_dir() else checkpoint
-        output = out_dir if out_dir is not None else ckpt_file.parent / f"eval_{split}.json"
-        files = _result_files(output, ckpt_file, overwrite=overwrite)
+        output = out_dir if out_dir is not None else checkpoint_eval_path(ckpt_file, dataset, split)
+        target = EvalTarget(
+            checkpoint=_absolute(ckpt_file), dataset=_absolute(dataset), split=split
+        )
+        files = _result_files(output, target, ckpt_file, overwrite=overwrite)
         result = evaluate_checkpoint(
             checkpoint,
             dataset,
@@ -149,10 +193,11 @@ def eval_(
             raise click.UsageError("--pred needs --gt")
         if dataset is not None:
             raise click.UsageError("DATASET is only used with --checkpoint")
-        from ..train.results import evaluate_folders  # numpy only: no torch needed
+        from ..train.results import EvalTarget, evaluate_folders  # numpy only: no torch needed
 
         output = out_dir
-        files = [] if output is None else _result_files(output, None, overwrite=overwrite)
+        target = EvalTarget(pred=_absolute(pred_dir), gt=_absolute(gt_dir))
+        files = [] if output is None else _result_files(output, target, None, overwrite=overwrite)
         result = evaluate_folders(
             pred_dir,
             gt_dir,
@@ -160,6 +205,7 @@ def eval_(
             min_depth=min_depth,
             max_depth=max_depth,
             median_scaling=bool(median),
+            fill=fill,
             progress=progress_wanted(),
         )
         title = f"{pred_dir} against {gt_dir}"

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from .options import output_dir_option, quiet_debug_options
+from .options import output_dir_option, overwrite_option, quiet_debug_options
 
 
 def _overrides(ctx, param, values):
@@ -46,13 +46,15 @@ def run_command(args: list[str]) -> tuple[int, str, str]:
     return code, out.getvalue(), err.getvalue()
 
 
-def _run(config: Path, out_dir: Path, overrides: dict, only: tuple[str, ...]) -> None:
+def _run(config: Path, out_dir: Path, overrides: dict, only: tuple[str, ...],
+         overwrite: bool = False) -> None:  # fmt: skip
     from ..pipeline.workflow import load_workflow, run_workflow
 
     wf = load_workflow(config, out_dir=out_dir, overrides=overrides)
     quiet = bool((click.get_current_context().find_root().obj or {}).get("quiet"))
     echo = (lambda s: None) if quiet else (lambda s: click.echo(s, err=True))
-    results = run_workflow(wf, out_dir, run_command=run_command, only=list(only) or None, echo=echo)
+    results = run_workflow(wf, out_dir, run_command=run_command, only=list(only) or None,
+                           echo=echo, overwrite=overwrite)  # fmt: skip
     click.echo(f"{len(results)} step(s) done; report: {Path(out_dir) / 'report.md'}")
 
 
@@ -68,8 +70,10 @@ def _run(config: Path, out_dir: Path, overrides: dict, only: tuple[str, ...]) ->
     help="Override a config variable (repeatable), e.g. --set data=/data/kitti.",
 )
 @click.option("--only", multiple=True, metavar="STEP", help="Run only the named step(s).")
+@overwrite_option(help="Replace OUT/report.md and OUT/steps.json even when the pipeline did not "
+                  "write them (the steps' own outputs follow each command's rule).")  # fmt: skip
 @quiet_debug_options
-def pipeline(config, out_dir, overrides, only):
+def pipeline(config, out_dir, overrides, only, overwrite):
     """Run the steps of a YAML/TOML CONFIG in order and write OUT/report.md.
 
     Each step is one sparsetools command line; ${vars} from the config's vars:
@@ -81,7 +85,7 @@ def pipeline(config, out_dir, overrides, only):
       sparsetools pipeline sample_data/demo.yaml -o out/demo
       sparsetools pipeline my_kitti.yaml -o out/kitti --set data=/data/kitti_raw
     """
-    _run(config, out_dir, overrides, only)
+    _run(config, out_dir, overrides, only, overwrite)
 
 
 @click.command("demo")

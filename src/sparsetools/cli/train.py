@@ -327,9 +327,10 @@ def selfsup_options(f):
 @threads_option(
     default=None,
     help=(
-        "torch CPU threads (default: the free cores, i.e. this process's CPUs that are idle "
-        "when the run starts, at least 1; recorded in config.json, kept by --resume: CPU "
-        "results are identical for the same count)."
+        "torch CPU threads (default: the CPUs this process may use, at most torch's own "
+        "default: the same number for the same machine, whatever its load; on a busy "
+        "machine give fewer). Recorded in config.json and kept by --resume: CPU results are "
+        "identical for the same count."
     ),
 )
 @selfsup_options
@@ -345,7 +346,8 @@ def train(ctx, dataset, out_dir, resume, as_json, self_supervised, **options):
 
     After every epoch: validation metrics in RUN_DIR/metrics.csv, checkpoints last.pt and
     best.pt (lowest validation RMSE), curves.png and prediction pictures. The same seed
-    (and --threads) gives the same metrics on CPU; --resume continues exactly. The same
+    (and --threads) gives the same metrics on CPU; --resume continues exactly, and only the
+    run that RUN_DIR's config.json and metrics.csv name (every run has a run id). The same
     command again on a finished run is a no-op; other settings need another RUN_DIR.
 
     \b

@@ -409,10 +409,9 @@ def read_depth_file(path: str | os.PathLike) -> np.ndarray:
     path = Path(path)
     if path.suffix.lower() == ".png":
         return read_depth_png(path)
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise FormatError(f"{path}: cannot read ({exc.strerror or exc})") from exc
+    from .npy import read_map_bytes
+
+    data = read_map_bytes(path, what="depth map")
     return decode_depth_bytes(data, path.suffix, source=str(path))
 
 
@@ -437,11 +436,10 @@ def decode_confidence_bytes(data: bytes, suffix: str, *, source: str = "confiden
 
 def read_confidence_file(path: str | os.PathLike) -> np.ndarray:
     """Read a confidence map (see :func:`decode_confidence_bytes`): (H, W) float32 in [0, 1]."""
+    from .npy import read_map_bytes
+
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise FormatError(f"{path}: cannot read ({exc.strerror or exc})") from exc
+    data = read_map_bytes(path, what="confidence map")
     return decode_confidence_bytes(data, path.suffix, source=str(path))
 
 

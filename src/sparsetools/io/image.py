@@ -112,12 +112,12 @@ def image_size_of(path: str | os.PathLike) -> tuple[int, int]:
     """
     path = Path(path)
     try:
-        with open(path, "rb") as fh:
+        with _open_regular(path, "image") as fh:
             head = fh.read(1 << 16)
             size = image_header_size(head)
             if size is None and head[:2] == b"\xff\xd8":
                 # A JPEG's frame header can follow a large EXIF block.
-                size = image_header_size(head + fh.read())
+                size = image_header_size(head + fh.read(MAX_IMAGE_FILE_BYTES))
     except FileNotFoundError as exc:
         raise FormatError(f"{path}: no such image") from exc
     except IsADirectoryError as exc:
@@ -130,10 +130,32 @@ def image_size_of(path: str | os.PathLike) -> tuple[int, int]:
     return size
 
 
+#: Largest image file read (bytes): a PNG at the default pixel limit stored uncompressed in
+#: 16-bit RGBA is about 1 GiB.
+MAX_IMAGE_FILE_BYTES = 4 << 30
+
+
+def _open_regular(path: Path, what: str):
+    """``path`` opened for reading when it is a regular file: a FIFO would block the open (it
+    is opened without blocking), a device such as ``/dev/zero`` would be read forever."""
+    import stat
+
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+    fh = os.fdopen(fd, "rb")
+    mode = os.fstat(fd).st_mode
+    if not stat.S_ISREG(mode):
+        fh.close()
+        if stat.S_ISDIR(mode):
+            raise IsADirectoryError(f"{path} is a folder")
+        raise FormatError(f"{path}: not a regular file (a device or a pipe?), expected a {what}")
+    return fh
+
+
 def _read_bytes(path: Path, what: str) -> bytes:
     article = "an" if what[:1] in "aeiou" else "a"
     try:
-        data = path.read_bytes()
+        with _open_regular(path, what) as fh:
+            data = fh.read(MAX_IMAGE_FILE_BYTES + 1)
     except FileNotFoundError as exc:
         raise FormatError(f"{path}: no such {what}") from exc
     except IsADirectoryError as exc:
@@ -142,6 +164,9 @@ def _read_bytes(path: Path, what: str) -> bytes:
         raise FormatError(f"{path}: cannot read ({exc.strerror or exc})") from exc
     if not data:
         raise FormatError(f"{path}: empty file, expected {article} {what}")
+    if len(data) > MAX_IMAGE_FILE_BYTES:
+        raise FormatError(f"{path}: more than {MAX_IMAGE_FILE_BYTES} bytes, too large for {article} "
+                          f"{what}")  # fmt: skip
     return data
 
 

@@ -1,8 +1,13 @@
-"""``.npy`` arrays from untrusted files: no pickles, and no allocation a file cannot back.
+"""``.npy`` arrays from untrusted files: no pickles, no allocation a file cannot back, and the
+pixel limit of every image input.
 
 ``np.load`` trusts the header: a file of a few bytes that declares a shape of 10^13 rows
 makes it allocate terabytes (``MemoryError``) before noticing that the data is missing.
-:func:`load_npy` checks the declared size against the bytes present first.
+:func:`load_npy` checks the declared size against the bytes present first, and the declared
+shape against the pixel limit PNG inputs have (:func:`sparsetools.io.image.check_pixel_count`,
+``SPARSETOOLS_MAX_IMAGE_PIXELS``): an (H, W, ...) array counts H x (W x ...) elements.
+:func:`check_npy_file` reads only a file's header, so a caller refuses a huge array before
+reading it.
 """
 
 from __future__ import annotations
@@ -15,7 +20,14 @@ import numpy as np
 
 from ..errors import FormatError
 
-__all__ = ["load_npy"]
+__all__ = ["MAX_MAP_FILE_BYTES", "check_npy_file", "check_npy_shape", "load_npy", "read_map_bytes"]
+
+#: Largest depth-like map file read (bytes): a map at the default pixel limit as an
+#: uncompressed float32 ``.npy`` is 256 MiB; float64 with a few channels stays well below.
+MAX_MAP_FILE_BYTES = 4 << 30
+
+#: Largest .npy header read (bytes): numpy's own limit for untrusted headers.
+_MAX_HEADER = 10000
 
 
 def _header(npy_format, fh):
@@ -27,6 +39,68 @@ def _header(npy_format, fh):
     else:
         raise ValueError(f"unsupported .npy format version {version}")
     return shape, dtype
+
+
+def check_npy_shape(shape, source: str) -> None:
+    """Refuse a declared shape above the pixel limit (H x the product of the other
+    dimensions; a 1-D array counts its length)."""
+    from .image import check_pixel_count
+
+    dims = [int(d) for d in shape]
+    height = dims[0] if dims else 1
+    width = math.prod(dims[1:]) if len(dims) > 1 else 1
+    check_pixel_count(width, height, f"{source}: declared size")
+
+
+def _read_header(fh, source: str, invalid: str):
+    from numpy.lib import format as npy_format
+
+    try:
+        with warnings.catch_warnings():  # "created on Python 2" and the like: not our output
+            warnings.simplefilter("ignore")
+            shape, dtype = _header(npy_format, fh)
+    except Exception as exc:  # numpy parses the header with ast/tokenize: many error types
+        raise FormatError(f"{source}: {invalid} ({' '.join(str(exc).split())})") from exc
+    if dtype.hasobject:
+        raise FormatError(f"{source}: {invalid} (object arrays hold pickles, which are refused)")
+    return shape, dtype
+
+
+def _check_size(shape, dtype, have: int, source: str, invalid: str) -> None:
+    need = math.prod(int(s) for s in shape) * dtype.itemsize
+    if need != have:
+        raise FormatError(
+            f"{source}: {invalid} (the header declares {dtype} {tuple(shape)}, {need} bytes; "
+            f"the file holds {have}: truncated or corrupt)"
+        )
+    check_npy_shape(shape, source)
+
+
+def check_npy_file(path, *, invalid: str = "not a valid .npy array") -> tuple:
+    """Read only the header of a ``.npy`` file and check it (no pickle, the pixel limit, the
+    declared size equal to the data present) before the file is read; return its shape.
+
+    Raises
+    ------
+    FormatError
+        Unreadable, not a regular file, or a header :func:`load_npy` would refuse.
+    """
+    import os
+    import stat
+
+    source = str(path)
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))  # a FIFO must not block
+        with os.fdopen(fd, "rb") as fh:
+            st = os.fstat(fh.fileno())
+            if not stat.S_ISREG(st.st_mode):
+                raise FormatError(f"{source}: not a regular file (a device or a pipe?)")
+            head = io.BytesIO(fh.read(_MAX_HEADER + 16))
+    except OSError as exc:
+        raise FormatError(f"{source}: cannot read ({exc.strerror or exc})") from exc
+    shape, dtype = _read_header(head, source, invalid)
+    _check_size(shape, dtype, st.st_size - head.tell(), source, invalid)
+    return tuple(int(s) for s in shape)
 
 
 def load_npy(data: bytes, *, source: str, invalid: str = "not a valid .npy array") -> np.ndarray:
@@ -49,30 +123,39 @@ def load_npy(data: bytes, *, source: str, invalid: str = "not a valid .npy array
     Raises
     ------
     FormatError
-        Not a ``.npy`` file, an unsupported version, an object (pickled) array, or a header
-        whose shape and dtype do not match the number of data bytes (truncated or corrupt).
+        Not a ``.npy`` file, an unsupported version, an object (pickled) array, a shape above
+        the pixel limit, or a header whose shape and dtype do not match the number of data
+        bytes (truncated or corrupt).
     """
-    from numpy.lib import format as npy_format
-
     fh = io.BytesIO(data)
-    try:
-        with warnings.catch_warnings():  # "created on Python 2" and the like: not our output
-            warnings.simplefilter("ignore")
-            shape, dtype = _header(npy_format, fh)
-    except Exception as exc:  # numpy parses the header with ast/tokenize: many error types
-        raise FormatError(f"{source}: {invalid} ({' '.join(str(exc).split())})") from exc
-    if dtype.hasobject:
-        raise FormatError(f"{source}: {invalid} (object arrays hold pickles, which are refused)")
-    need = math.prod(int(s) for s in shape) * dtype.itemsize
-    have = len(data) - fh.tell()
-    if need != have:
-        raise FormatError(
-            f"{source}: {invalid} (the header declares {dtype} {tuple(shape)}, {need} bytes; "
-            f"the file holds {have}: truncated or corrupt)"
-        )
+    shape, dtype = _read_header(fh, source, invalid)
+    _check_size(shape, dtype, len(data) - fh.tell(), source, invalid)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             return np.load(io.BytesIO(data), allow_pickle=False)
     except (ValueError, EOFError, OSError) as exc:  # pragma: no cover - checked above
         raise FormatError(f"{source}: {invalid} ({' '.join(str(exc).split())})") from exc
+
+
+def read_map_bytes(path, *, what: str) -> bytes:
+    """The bytes of a depth-like map file (PNG or ``.npy``): a regular file (a link to
+    ``/dev/zero`` would be read forever, a FIFO would block) of at most
+    :data:`MAX_MAP_FILE_BYTES`; a ``.npy`` has its header checked first
+    (:func:`check_npy_file`), so an array above the pixel limit is refused before it is read.
+
+    Raises
+    ------
+    FormatError
+        Missing, unreadable, not a regular file, too large, or a refused ``.npy`` header.
+    """
+    from pathlib import Path
+
+    from .sidecar import read_regular_file
+
+    if Path(path).suffix.lower() == ".npy":
+        check_npy_file(path, invalid="not a readable .npy array")
+    try:
+        return read_regular_file(path, what=f"{what} file", max_bytes=MAX_MAP_FILE_BYTES)
+    except FileNotFoundError as exc:
+        raise FormatError(f"{path}: cannot read {what} (no such file)") from exc

@@ -39,6 +39,7 @@ from .atomic import atomic_path
 
 __all__ = [
     "EARTH_RADIUS_M",
+    "MAX_POSE_FILE_BYTES",
     "OXTS_FIELDS",
     "OxtsPacket",
     "check_rigid",
@@ -67,17 +68,24 @@ def _fmt(value: float) -> str:
     return repr(float(value) + 0.0)  # + 0.0 turns -0.0 into 0.0
 
 
+#: Largest pose, times or oxts file read (bytes): KITTI odometry's longest ``poses.txt``
+#: (4,661 frames) is about 1 MB.
+MAX_POSE_FILE_BYTES = 64 << 20
+
+
 def _read_lines(path: Path, what: str) -> list[str]:
+    """The lines of a text file: a regular file (a link to ``/dev/zero`` would be read
+    forever) of at most :data:`MAX_POSE_FILE_BYTES`."""
+    from .sidecar import read_regular_file
+
     try:
-        text = path.read_text(encoding="utf-8", errors="strict")
+        data = read_regular_file(path, what=f"{what} file", max_bytes=MAX_POSE_FILE_BYTES)
     except FileNotFoundError as exc:
         raise FormatError(f"{path}: no such {what} file") from exc
-    except IsADirectoryError as exc:
-        raise FormatError(f"{path}: is a folder, expected a {what} file") from exc
+    try:
+        text = data.decode("utf-8", errors="strict")
     except UnicodeDecodeError as exc:
         raise FormatError(f"{path}: not a text {what} file") from exc
-    except OSError as exc:
-        raise FormatError(f"{path}: cannot read ({exc.strerror or exc})") from exc
     return text.splitlines()
 
 

@@ -1,10 +1,16 @@
 """Compiled kernels of :func:`sparsetools.ops.jbf.jbf_expand` (numba, ``cache=True``).
 
-For every seed the kernels visit the rows of its window, cut to the pruning disc, in two
+One band kernel serves every guidance, gray or RGB, as an (H, W, C) array (as scikit-image's
+``denoise_bilateral`` keeps one kernel for any channel count): the channel count C travels as
+the length of a tuple, which is part of its numba type, so numba compiles one machine code per
+C, with the channel loop unrolled and constant pixel strides (``benchmarks/bench_jbf.py
+--kernels`` times it against the two kernels it replaced).
+
+For every seed the kernel visits the rows of its window, cut to the pruning disc, in two
 passes per row:
 
 1. a candidate mask, computed with affine loads only so that LLVM vectorises it: a pixel at
-   offset (i, j) passes iff its squared intensity difference t is <= pass_t[j, i], the
+   offset (i, j) passes iff its squared intensity distance t is <= pass_t[j, i], the
    largest t that passes at that offset (an exact integer form of C >= threshold, see
    :func:`_offset_table`), and, for conflict="nearest", it is not already taken by a nearer
    seed;
@@ -18,8 +24,9 @@ from __future__ import annotations
 
 import numba
 import numpy as np
+from numba.np.unsafe.ndarray import to_fixed_tuple
 
-__all__ = ["band_gray", "band_rgb", "expand_gray", "expand_rgb", "mark_seeds", "prologue"]
+__all__ = ["band", "expand", "mark_seeds", "prologue"]
 
 # Internal confidence of a seed pixel: above any real confidence, so nothing replaces it.
 _SEED_CONF = np.float32(2.0)
@@ -119,13 +126,30 @@ def _better(d, c, bd, bc, max_confidence):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def _band_gray(
+def _dist2(p_seg, k, p0):  # pragma: no cover - compiled
+    """Squared Euclidean distance (int32) between the tuple ``p0`` and pixel k of ``p_seg``,
+    a row segment with its channels interleaved (``len(p0)`` values a pixel).
+
+    ``len(p0)`` is part of the tuple's type: the channel loop and the pixel stride are
+    constants, so LLVM unrolls the one and the caller's pixel loop stays vectorisable.
+    """
+    n_ch = len(p0)
+    dist2 = np.int32(0)
+    for ch in range(n_ch):
+        diff = np.int32(p_seg[k * n_ch + ch]) - np.int32(p0[ch])
+        dist2 += diff * diff
+    return dist2
+
+
+@numba.njit(cache=True, nogil=True)
+def _band(
     rows,
     cols,
     depths,
     half_u,
     half_v,
     guide,
+    channels,
     spatial_lut,
     range_lut,
     use_spatial,
@@ -141,15 +165,23 @@ def _band_gray(
     y_lo,
     y_hi,
 ):  # pragma: no cover - compiled
-    """Rows ``y_lo:y_hi`` of the expansion for an (H, W) uint8 guidance."""
-    width = guide.shape[1]
+    """Rows ``y_lo:y_hi`` of the expansion for an (H, W, C) uint8 guidance.
+
+    Intensities are compared by their squared Euclidean distance over the C channels (C = 1:
+    gray, C = 3: RGB). ``channels`` is ``tuple(range(C))``: its length is part of its numba
+    type, so every C compiles to its own machine code with a fully unrolled channel loop (as
+    fast as a kernel written for that C alone; a run-time C loop is about twice as slow).
+    """
+    height, width = guide.shape[:2]
+    n_ch = len(channels)  # a compile-time constant
+    rows_flat = guide.reshape(height, width * n_ch)  # each row's channels interleaved
     mask = np.zeros(8 * ((width + 7) // 8 + 1), dtype=np.uint8)
     words = mask.view(np.uint64)
     for s in range(rows.shape[0]):
         y0 = rows[s]
         x0 = cols[s]
         d = depths[s]
-        g0 = np.int32(guide[y0, x0])
+        p0 = to_fixed_tuple(guide[y0, x0], n_ch)
         hv = min(half_v[s], half_width.shape[0] - 1)
         for y in range(max(y0 - hv, y_lo), min(y0 + hv, y_hi - 1) + 1):
             j = abs(y - y0)
@@ -159,18 +191,16 @@ def _band_gray(
             m = right - left
             if m <= 0:
                 continue
-            g_seg = guide[y, left:right]
+            p_seg = rows_flat[y, left * n_ch : right * n_ch]
             d_seg = depth[y, left:right]
             t_seg = pass_t[j if use_spatial else 0, center + left - x0 : center + right - x0]
             if max_confidence:
                 for k in range(m):
-                    diff = np.int32(g_seg[k]) - g0
-                    mask[k] = np.uint8(diff * diff <= t_seg[k])
+                    mask[k] = np.uint8(_dist2(p_seg, k, p0) <= t_seg[k])
             else:
                 for k in range(m):
-                    diff = np.int32(g_seg[k]) - g0
                     bd = d_seg[k]
-                    mask[k] = np.uint8((diff * diff <= t_seg[k]) & ((bd == 0) | (bd >= d)))
+                    mask[k] = np.uint8((_dist2(p_seg, k, p0) <= t_seg[k]) & ((bd == 0) | (bd >= d)))
             n_words = (m + 7) // 8
             for k in range(m, n_words * 8):
                 mask[k] = 0
@@ -186,96 +216,7 @@ def _band_gray(
                     bc = c_seg[k]
                     if bc == _SEED_CONF:
                         continue
-                    t = 0
-                    if use_range:
-                        diff = np.int64(g_seg[k]) - g0
-                        t = diff * diff
-                    if use_spatial:
-                        i = left + k - x0
-                        c = np.float32(spatial_lut[i * i + j2] * range_lut[t])
-                    else:
-                        c = np.float32(range_lut[t])
-                    if _better(d, c, d_seg[k], bc, max_confidence):
-                        d_seg[k] = d
-                        c_seg[k] = c
-
-
-@numba.njit(cache=True, nogil=True)
-def _band_rgb(
-    rows,
-    cols,
-    depths,
-    half_u,
-    half_v,
-    guide,
-    spatial_lut,
-    range_lut,
-    use_spatial,
-    use_range,
-    max_confidence,
-    pass_t,
-    half_width,
-    center,
-    positions,
-    counts,
-    depth,
-    conf,
-    y_lo,
-    y_hi,
-):  # pragma: no cover - compiled
-    """Rows ``y_lo:y_hi`` for an (H, W, 3) guidance compared by Euclidean RGB distance."""
-    width = guide.shape[1]
-    mask = np.zeros(8 * ((width + 7) // 8 + 1), dtype=np.uint8)
-    words = mask.view(np.uint64)
-    for s in range(rows.shape[0]):
-        y0 = rows[s]
-        x0 = cols[s]
-        d = depths[s]
-        r0 = np.int32(guide[y0, x0, 0])
-        g0 = np.int32(guide[y0, x0, 1])
-        b0 = np.int32(guide[y0, x0, 2])
-        hv = min(half_v[s], half_width.shape[0] - 1)
-        for y in range(max(y0 - hv, y_lo), min(y0 + hv, y_hi - 1) + 1):
-            j = abs(y - y0)
-            hu = min(half_u[s], half_width[j])
-            left = max(x0 - hu, 0)
-            right = min(x0 + hu, width - 1) + 1
-            m = right - left
-            if m <= 0:
-                continue
-            p_seg = guide[y, left:right]
-            d_seg = depth[y, left:right]
-            t_seg = pass_t[j if use_spatial else 0, center + left - x0 : center + right - x0]
-            for k in range(m):
-                dr = np.int32(p_seg[k, 0]) - r0
-                dg = np.int32(p_seg[k, 1]) - g0
-                db = np.int32(p_seg[k, 2]) - b0
-                ok = dr * dr + dg * dg + db * db <= t_seg[k]
-                if not max_confidence:
-                    bd = d_seg[k]
-                    ok = ok & ((bd == 0) | (bd >= d))
-                mask[k] = np.uint8(ok)
-            n_words = (m + 7) // 8
-            for k in range(m, n_words * 8):
-                mask[k] = 0
-            c_seg = conf[y, left:right]
-            j2 = (y - y0) * (y - y0)
-            for w in range(n_words):
-                word = words[w]
-                if word == 0:
-                    continue
-                b = ((word & _BYTES_LOW) * _BYTES_GATHER) >> np.uint64(56)
-                for p in range(counts[b]):
-                    k = w * 8 + positions[b, p]
-                    bc = c_seg[k]
-                    if bc == _SEED_CONF:
-                        continue
-                    t = 0
-                    if use_range:
-                        dr = np.int64(p_seg[k, 0]) - r0
-                        dg = np.int64(p_seg[k, 1]) - g0
-                        db = np.int64(p_seg[k, 2]) - b0
-                        t = dr * dr + dg * dg + db * db
+                    t = _dist2(p_seg, k, p0) if use_range else 0
                     if use_spatial:
                         i = left + k - x0
                         c = np.float32(spatial_lut[i * i + j2] * range_lut[t])
@@ -287,12 +228,12 @@ def _band_rgb(
 
 
 # -- entry points -------------------------------------------------------------------------------
-# The serial kernels run every row as one band. For several threads, ``jbf._expand`` runs
-# :func:`prologue`, then :func:`band_gray` / :func:`band_rgb` on bands of rows that each
-# thread owns (no two threads write one pixel; nogil, so Python threads run them in
-# parallel), then :func:`mark_seeds`. Every pixel ends with the best (depth, confidence) pair
-# of the seeds that reach it, in a total order, so the result is the same for any split into
-# bands, whatever the number of threads.
+# The serial kernel runs every row as one band. For several threads, ``jbf._expand`` runs
+# :func:`prologue`, then :func:`band` on bands of rows that each thread owns (no two threads
+# write one pixel; nogil, so Python threads run them in parallel), then :func:`mark_seeds`.
+# Every pixel ends with the best (depth, confidence) pair of the seeds that reach it, in a
+# total order, so the result is the same for any split into bands, whatever the number of
+# threads.
 
 
 @numba.njit(cache=True, nogil=True)
@@ -316,31 +257,17 @@ def mark_seeds(rows, cols, depths, depth, conf):  # pragma: no cover - compiled
     _mark_seeds(rows, cols, depths, depth, conf, np.float32(1.0))
 
 
-band_gray = _band_gray
-band_rgb = _band_rgb
+band = _band
 
 
 @numba.njit(cache=True, nogil=True)
-def expand_gray(rows, cols, depths, half_u, half_v, guide, spatial_lut, range_lut, use_spatial,
-                use_range, threshold, max_confidence, depth, conf):  # fmt: skip  # pragma: no cover
-    """Expansion for an (H, W) uint8 guidance, one thread (arguments: see ``jbf._expand``)."""
+def expand(rows, cols, depths, half_u, half_v, guide, channels, spatial_lut, range_lut,
+           use_spatial, use_range, threshold, max_confidence, depth, conf):  # fmt: skip  # pragma: no cover
+    """Expansion for an (H, W, C) uint8 guidance, one thread (arguments: see ``jbf._expand``)."""
     pass_t, half_width, center, positions, counts = prologue(
         rows, cols, depths, spatial_lut, range_lut, use_spatial, use_range, threshold, depth, conf
     )
-    _band_gray(rows, cols, depths, half_u, half_v, guide, spatial_lut, range_lut, use_spatial,
-               use_range, max_confidence, pass_t, half_width, center, positions, counts, depth,
-               conf, 0, depth.shape[0])  # fmt: skip
-    mark_seeds(rows, cols, depths, depth, conf)
-
-
-@numba.njit(cache=True, nogil=True)
-def expand_rgb(rows, cols, depths, half_u, half_v, guide, spatial_lut, range_lut, use_spatial,
-               use_range, threshold, max_confidence, depth, conf):  # fmt: skip  # pragma: no cover
-    """Expansion for an (H, W, 3) uint8 guidance (Euclidean RGB distance), one thread."""
-    pass_t, half_width, center, positions, counts = prologue(
-        rows, cols, depths, spatial_lut, range_lut, use_spatial, use_range, threshold, depth, conf
-    )
-    _band_rgb(rows, cols, depths, half_u, half_v, guide, spatial_lut, range_lut, use_spatial,
-              use_range, max_confidence, pass_t, half_width, center, positions, counts, depth,
-              conf, 0, depth.shape[0])  # fmt: skip
+    _band(rows, cols, depths, half_u, half_v, guide, channels, spatial_lut, range_lut,
+          use_spatial, use_range, max_confidence, pass_t, half_width, center, positions, counts,
+          depth, conf, 0, depth.shape[0])  # fmt: skip
     mark_seeds(rows, cols, depths, depth, conf)

@@ -47,7 +47,19 @@ import numpy as np
 
 from ..calibration import Calibration
 from ..errors import ParameterError
-from ..validate import check_choice, check_int_range, check_non_negative, check_positive
+from ..validate import (
+    check_all_finite,
+    check_choice,
+    check_dtype,
+    check_instance,
+    check_int_range,
+    check_non_negative,
+    check_nonempty,
+    check_ordered,
+    check_points,
+    check_positive,
+    check_shape,
+)
 from .projection import project_points, project_points_with_index, rigid_inverse
 
 __all__ = [
@@ -116,8 +128,7 @@ class AccumulateSettings:
     def __post_init__(self) -> None:
         lo = check_non_negative(self.min_depth, "min_depth")
         hi = check_positive(self.max_depth, "max_depth", allow_none=True)
-        if hi is not None and hi <= lo:
-            raise ParameterError(f"must be > min_depth ({lo}), got {hi}", param="max_depth")
+        check_ordered(lo, hi, "min_depth", "max_depth")
         check_non_negative(self.occlusion_rel, "occlusion_rel", allow_none=True)
         check_non_negative(self.consistency_rel, "consistency_rel", allow_none=True)
         check_choice(self.occlusion_foreground, "occlusion_foreground", OCCLUSION_FOREGROUNDS)
@@ -214,34 +225,26 @@ class AccumulationResult:
 
 
 def _check_inputs(scans, poses, calib, reference, moving_mask):
-    if not isinstance(calib, Calibration):
-        raise ParameterError(f"calib must be a Calibration, got {type(calib).__name__}")
+    check_instance(calib, "calib", Calibration)
     width, height = calib.size
-    if len(scans) == 0:
-        raise ParameterError("accumulate_scans needs at least one scan")
+    check_nonempty(scans, "scans")
     poses = np.asarray(poses, dtype=np.float64)
-    if poses.shape != (len(scans), 4, 4):
+    check_shape(poses, f"({len(scans)}, 4, 4)", "T_world_from_velo")  # one pose per scan
+    check_all_finite(poses, "T_world_from_velo")
+    if not np.allclose(poses[:, 3], (0, 0, 0, 1)):
         raise ParameterError(
-            f"need one 4x4 pose per scan ({len(scans)}), got poses of shape {poses.shape}"
+            "poses must be rigid 4x4 transforms (last row 0 0 0 1)", param="T_world_from_velo"
         )
-    if not np.all(np.isfinite(poses)) or not np.allclose(poses[:, 3], (0, 0, 0, 1)):
-        raise ParameterError("poses must be finite rigid 4x4 transforms (last row 0 0 0 1)")
     reference = check_int_range(reference, "reference", low=0, high=len(scans) - 1)
     checked = []
     for k, pts in enumerate(scans):
         p = np.asarray(pts)
-        if p.ndim != 2 or p.shape[1] < 3 or p.dtype.kind not in "fiu":
-            raise ParameterError(
-                f"scan {k} must be (N, C>=3) numeric x, y, z, got {p.dtype} {p.shape}"
-            )
+        check_points(p, f"scans[{k}]")
         checked.append(p)
     if moving_mask is not None:
         moving_mask = np.asarray(moving_mask)
-        if moving_mask.shape != (height, width) or moving_mask.dtype != bool:
-            raise ParameterError(
-                f"moving_mask must be an ({height}, {width}) bool array, got "
-                f"{moving_mask.dtype} {moving_mask.shape}"
-            )
+        check_shape(moving_mask, f"({height}, {width})", "moving_mask")
+        check_dtype(moving_mask, "moving_mask", (np.bool_,))
     return checked, poses, int(reference), moving_mask, width, height
 
 
@@ -306,10 +309,7 @@ def accumulate_scans(
         Bad shapes, poses, settings, mask or reference.
     """
     s = AccumulateSettings() if settings is None else settings
-    if not isinstance(s, AccumulateSettings):
-        raise ParameterError(
-            f"must be an AccumulateSettings, got {type(s).__name__}", param="settings"
-        )
+    check_instance(s, "settings", AccumulateSettings)
     scans, poses, reference, moving_mask, width, height = _check_inputs(
         scans, T_world_from_velo, calib, reference, moving_mask
     )

@@ -14,6 +14,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ParameterError
+from ..validate import (
+    check_choice,
+    check_int_range,
+    check_non_negative,
+    check_nonempty,
+    check_shape,
+    check_values,
+)
 from .lidar_profile import (
     SensorProfile,
     _check_n_lasers,
@@ -85,6 +93,7 @@ def horizon_rings(elevation_deg: np.ndarray, n: int) -> tuple[int, ...]:
     tuple of int, sorted (ring 0 = highest)
     """
     el = np.asarray(elevation_deg, dtype=np.float64)
+    check_shape(el, "(L)", "elevation_deg")
     n = _check_n(n, int(np.count_nonzero(np.isfinite(el))))
     targets = HORIZON_TARGETS_DEG[0] - _HORIZON_PITCH_DEG * np.arange(n)
     free = np.isfinite(el)
@@ -116,16 +125,16 @@ def pl_line_spec(n: int, *, height: int = 64) -> tuple[int, ...]:
     n <= 4: the first n of the published 4-beam ``line_spec`` 5 7 9 11; otherwise every
     (height / n)-th bin from 0 (the script's ``--slice``), which needs n to divide ``height``.
     """
-    if int(n) != n or n < 1:
-        raise ParameterError(f"N must be a positive integer, got {n}")
+    n = check_int_range(n, "n", low=1)
+    height = check_int_range(height, "height", low=1)
     if n <= 4:
-        return PL_LINE_SPEC_4[: int(n)]
+        return PL_LINE_SPEC_4[:n]
     if height % n:
         raise ParameterError(
             f"pl++ with N = {n} keeps every (H/N)-th 0.4-deg bin, so N must divide H = {height} "
             "(or give --line-spec)"
         )
-    return tuple(range(0, height, height // int(n)))
+    return tuple(range(0, height, height // n))
 
 
 #: Padding (deg) of the float32 bounds on each laser's elevation median: over 1000 times the
@@ -213,8 +222,8 @@ def _elevation_bounds(
 
 
 def _check_n(n, available: int) -> int:
-    if n is None or int(n) != n or n < 1:
-        raise ParameterError(f"N (beams to keep) must be a positive integer, got {n}")
+    """``n`` (beams to keep) as an int in 1..available."""
+    n = check_int_range(n, "n", low=1)
     if n > available:
         raise ParameterError(f"the cloud has only {available} rings, cannot keep {n} beams")
     return int(n)
@@ -258,19 +267,16 @@ def pl_sparsify_index(
     index : (M,) int64 into ``points``
     """
     points = _check_points(points, allow_empty=True)
-    if int(width) != width or width < 1 or int(height) != height or height < 1:
-        raise ParameterError(f"pl++ grid must be positive integers, got {width} x {height}")
+    width = check_int_range(width, "width", low=1)
+    height = check_int_range(height, "height", low=1)
     spec = tuple(int(s) for s in line_spec)
-    if not spec:
-        raise ParameterError("line_spec is empty")
+    check_nonempty(spec, "line_spec")
     if len(set(spec)) != len(spec):
         raise ParameterError(f"line_spec repeats a bin: {spec}")
-    if min(spec) < 0 or max(spec) >= height:
-        raise ParameterError(f"line_spec bins must lie in 0..{height - 1}, got {spec}")
+    check_values(spec, "line_spec", low=0, high=height - 1)  # bins of the grid
     img_w, img_h = image_size
     M = np.asarray(projection, dtype=np.float64)
-    if M.shape != (3, 4):
-        raise ParameterError(f"projection must be 3x4, got shape {M.shape}")
+    check_shape(M, "(3, 4)", "projection")
     xyz64 = points[:, :3].astype(np.float64)
     uvw = xyz64 @ M[:, :3].T + M[:, 3]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -400,8 +406,11 @@ def select_beams(
     """
     points = _check_points(points, allow_empty=True)
     n_lasers = _check_n_lasers(n_lasers)
-    if select is not None and select not in SELECT_MODES:
-        raise ParameterError(f"unknown selection {select!r} (choose {', '.join(SELECT_MODES)})")
+    if select is not None:
+        check_choice(select, "select", SELECT_MODES)
+    check_non_negative(far_range, "far_range")
+    pl_width = check_int_range(pl_width, "pl_width", low=1)
+    pl_height = check_int_range(pl_height, "pl_height", low=1)
     if rings is not None and select is not None:
         raise ParameterError("give either explicit rings or a selection mode, not both")
     if line_spec is not None and select not in (None, "pl++"):
@@ -434,12 +443,10 @@ def select_beams(
     present = np.flatnonzero(seen)
     if rings is not None:
         chosen = tuple(sorted(int(k) for k in rings))
-        if not chosen:
-            raise ParameterError("no rings given")
+        check_nonempty(chosen, "rings")
         if len(set(chosen)) != len(chosen):
             raise ParameterError(f"rings repeat: {tuple(rings)}")
-        if chosen[0] < 0 or chosen[-1] >= n_lasers:
-            raise ParameterError(f"rings must lie in 0..{n_lasers - 1}, got {tuple(rings)}")
+        check_values(chosen, "rings", low=0, high=n_lasers - 1)
         if n is not None and n != len(chosen):
             raise ParameterError(f"N = {n} but {len(chosen)} rings were given")
         mode = "rings"
@@ -455,8 +462,8 @@ def select_beams(
                 el = profile.elevation_deg
             else:
                 el = _horizon_elevations(points, ring, n, n_lasers=n_lasers, far_range=far_range)
-            if el.shape != (n_lasers,):
-                raise ParameterError(f"need one elevation per laser ({n_lasers}), got {el.shape}")
+            source = "profile" if ring_elevation_deg is None else "ring_elevation_deg"
+            check_shape(el, f"({n_lasers})", source)  # one elevation per laser
             chosen = horizon_rings(el, n)
     missing = sorted(set(chosen) - set(present.tolist()))
     if missing:

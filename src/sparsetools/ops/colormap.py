@@ -4,6 +4,16 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..validate import (
+    check_dtype,
+    check_finite,
+    check_int_range,
+    check_nonempty,
+    check_range,
+    check_same_shape,
+    check_shape,
+)
+
 __all__ = ["colorize_depth", "overlay_depth", "side_by_side"]
 
 
@@ -26,6 +36,9 @@ def colorize_depth(
     import cv2
 
     d = np.asarray(depth, dtype=np.float32)
+    check_shape(d, "(H, W)", "depth")
+    check_finite(max_depth, "max_depth")
+    check_finite(min_depth, "min_depth")
     valid = np.isfinite(d) & (d > 0)
     t = np.clip((np.where(valid, d, 0) - min_depth) / max(max_depth - min_depth, 1e-6), 0, 1)
     idx = np.round(t * 255).astype(np.uint8)
@@ -57,6 +70,14 @@ def overlay_depth(
     """
     import cv2
 
+    image = np.asarray(image)
+    depth = np.asarray(depth)
+    check_shape(image, "(H, W, 3)", "image")
+    check_dtype(image, "image", (np.uint8,))
+    check_shape(depth, "(H, W)", "depth")
+    check_same_shape(depth, image, "depth", "image", dims=2)
+    check_int_range(dilate, "dilate", low=0)
+    check_range(dim, "dim", low=0.0, high=1.0)
     d = np.where(np.isfinite(depth) & (depth > 0), depth, 0).astype(np.float32)
     if dilate > 0:
         # Grey erosion of inverted depth keeps the NEAREST point where squares overlap.
@@ -73,8 +94,10 @@ def overlay_depth(
 
 def side_by_side(panels: list[np.ndarray], *, vertical: bool = True, gap: int = 4) -> np.ndarray:
     """Stack (H, W, 3) uint8 panels with a white gap; widths (or heights) are padded to match."""
-    if not panels:
-        raise ValueError("no panels")
+    check_nonempty(panels, "panels")
+    for i, p in enumerate(panels):
+        check_shape(p, "(H, W, 3)", f"panels[{i}]")
+    check_int_range(gap, "gap", low=0)
     axis = 0 if vertical else 1
     other = 1 - axis
     size = max(p.shape[other] for p in panels)

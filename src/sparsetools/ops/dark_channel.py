@@ -31,7 +31,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import ParameterError
+from ..validate import (
+    check_all_finite,
+    check_array,
+    check_choice,
+    check_dtype,
+    check_non_negative,
+    check_odd,
+    check_same_shape,
+    check_shape,
+    check_values,
+)
 
 __all__ = [
     "COMBINE_MODES",
@@ -74,29 +84,29 @@ class DarkChannelFeatures:
 
 
 def _as_unit_rgb(image: np.ndarray) -> np.ndarray:
-    if not isinstance(image, np.ndarray):
-        raise ParameterError(f"image must be a numpy array, got {type(image).__name__}")
-    if image.ndim != 3 or image.shape[2] != 3:
-        raise ParameterError(f"image must be (H, W, 3) RGB, got shape {image.shape}")
-    if image.shape[0] == 0 or image.shape[1] == 0:
-        raise ParameterError(f"image is empty (shape {image.shape})")
+    """An (H, W, 3) RGB image, uint8 or float in [0, 1], as float32 in [0, 1]."""
+    check_array(image, "image")
+    check_shape(image, "(H, W, 3)", "image", nonempty=True)
+    check_dtype(image, "image", (np.uint8, np.float32, np.float64))
     if image.dtype == np.uint8:
         return image.astype(np.float32) / np.float32(255.0)
-    if image.dtype in (np.float32, np.float64):
-        img = image.astype(np.float32)
-        if not np.all(np.isfinite(img)):
-            raise ParameterError("image holds NaN or infinite values")
-        if img.min() < 0 or img.max() > 1:
-            raise ParameterError(
-                f"float image must lie in [0, 1], got [{img.min():.4g}, {img.max():.4g}]"
-            )
-        return img
-    raise ParameterError(f"image must be uint8 or float in [0, 1], got dtype {image.dtype}")
+    img = image.astype(np.float32)
+    check_all_finite(img, "image")
+    check_values(img, "image", low=0.0, high=1.0)
+    return img
+
+
+def _bounded(size: int, shape: tuple[int, ...]) -> int:
+    """The window's side clipped to the image: a window of 2 max(H, W) - 1 pixels already
+    covers the whole image from every pixel, so any larger one gives the same result (and
+    ``--patch-size 30001`` on a small image builds no 900 MB kernel)."""
+    return min(size, 2 * max(shape[:2]) - 1)
 
 
 def _window_min(x: np.ndarray, size: int) -> np.ndarray:
     import cv2
 
+    size = _bounded(size, x.shape)
     # erode's default border value is "+infinity" for a minimum: out-of-image pixels are ignored.
     kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (size, size))
     return cv2.erode(np.ascontiguousarray(x), kernel, borderType=cv2.BORDER_CONSTANT)
@@ -105,6 +115,7 @@ def _window_min(x: np.ndarray, size: int) -> np.ndarray:
 def _window_max(x: np.ndarray, size: int) -> np.ndarray:
     import cv2
 
+    size = _bounded(size, x.shape)
     kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (size, size))
     return cv2.dilate(np.ascontiguousarray(x), kernel, borderType=cv2.BORDER_CONSTANT)
 
@@ -124,10 +135,9 @@ def dark_channel(image: np.ndarray, *, window: int = 15) -> np.ndarray:
     -------
     (H, W) float32, [0, 1]
     """
-    if int(window) != window or window < 1 or window % 2 == 0:
-        raise ParameterError(f"window must be an odd positive integer, got {window}")
+    window = check_odd(window, "window", low=1)
     img = _as_unit_rgb(image)
-    return _window_min(img.min(axis=2), int(window))
+    return _window_min(img.min(axis=2), window)
 
 
 def image_intensity(image: np.ndarray, *, intensity: str = "mean") -> np.ndarray:
@@ -137,10 +147,7 @@ def image_intensity(image: np.ndarray, *, intensity: str = "mean") -> np.ndarray
     -------
     (H, W) float32, [0, 1]
     """
-    if intensity not in INTENSITY_MODES:
-        raise ParameterError(
-            f"unknown intensity '{intensity}' (choose {', '.join(INTENSITY_MODES)})"
-        )
+    check_choice(intensity, "intensity", INTENSITY_MODES)
     img = _as_unit_rgb(image)
     if intensity == "mean":
         return img.mean(axis=2, dtype=np.float32)
@@ -177,8 +184,7 @@ def lddcv(
     """
     y = image_intensity(image, intensity=intensity)
     dc = dark_channel(image, window=window) if dark is None else np.asarray(dark, np.float32)
-    if dc.shape != y.shape:
-        raise ParameterError(f"dark channel is {dc.shape}, the image {y.shape}")
+    check_same_shape(dc, y, "dark", "image")
     return np.stack([_variation(y), _variation(dc)], axis=2)
 
 
@@ -201,13 +207,10 @@ def lddcv_mask(
     -------
     (H, W) bool, or (H, W, 2) bool for "separate"
     """
-    if combine not in COMBINE_MODES:
-        raise ParameterError(f"unknown combine '{combine}' (choose {', '.join(COMBINE_MODES)})")
-    if not (np.isfinite(threshold) and threshold >= 0):
-        raise ParameterError(f"threshold must be finite and >= 0, got {threshold}")
+    check_choice(combine, "combine", COMBINE_MODES)
+    check_non_negative(threshold, "threshold")
     v = np.asarray(variation)
-    if v.ndim != 3 or v.shape[2] != 2:
-        raise ParameterError(f"LDDCV map must be (H, W, 2), got shape {v.shape}")
+    check_shape(v, "(H, W, 2)", "variation")
     if combine == "separate":
         return np.abs(v) > threshold
     if combine == "any":

@@ -31,6 +31,20 @@ from types import MappingProxyType
 import numpy as np
 
 from ..errors import ParameterError
+from ..validate import (
+    check_all_finite,
+    check_array,
+    check_choice,
+    check_dtype,
+    check_instance,
+    check_non_negative,
+    check_ordered,
+    check_pair,
+    check_positive,
+    check_range,
+    check_shape,
+    check_values,
+)
 from .noise import CAMERA_PROFILES, NOISE_MODELS, NoiseParams, add_sensor_noise, sample_noise_params
 
 __all__ = [
@@ -49,16 +63,6 @@ __all__ = [
 RECORD_VERSION = 1
 KERNELS = ("disk", "gaussian")
 MISSING_MODES = ("error", "far")
-
-
-def _positive(name: str, value) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ParameterError(f"{name} must be a number, got {value!r}") from None
-    if not (math.isfinite(v) and v > 0):
-        raise ParameterError(f"{name} must be finite and > 0, got {value!r}")
-    return v
 
 
 @dataclass(frozen=True)
@@ -86,7 +90,7 @@ class CameraOptics:
 
     def __post_init__(self) -> None:
         for name in ("focal_length_m", "f_number", "pixel_pitch_m"):
-            object.__setattr__(self, name, _positive(name, getattr(self, name)))
+            object.__setattr__(self, name, check_positive(getattr(self, name), name))
 
     @property
     def aperture_m(self) -> float:
@@ -102,8 +106,8 @@ class CameraOptics:
         Use the ``K[0, 0]`` of the images that are blurred (after any resize) together with
         the pitch of *those* pixels, so the blur is in the same pixels as the calibration.
         """
-        f_px = _positive("focal_length_px", focal_length_px)
-        p = _positive("pixel_pitch_m", pixel_pitch_m)
+        f_px = check_positive(focal_length_px, "focal_length_px")
+        p = check_positive(pixel_pitch_m, "pixel_pitch_m")
         label = name or f"calibration f={f_px:g} px"
         return cls(label, f_px * p, f_number, p, f"f = {f_px:g} px x {p:g} m (calibration)")
 
@@ -137,22 +141,13 @@ def _optics(camera) -> CameraOptics:
             return CameraOptics(**camera)
         except TypeError as exc:
             raise ParameterError(f"not a valid camera description: {camera!r} ({exc})") from None
-    try:
-        return DEFOCUS_CAMERAS[camera]
-    except (KeyError, TypeError):
-        raise ParameterError(
-            f"unknown defocus camera {camera!r} (choose {', '.join(DEFOCUS_CAMERAS)}, or give "
-            "a CameraOptics with explicit values)"
-        ) from None
+    return DEFOCUS_CAMERAS[check_choice(camera, "camera", DEFOCUS_CAMERAS)]
 
 
 def _radius_scale(optics: CameraOptics, focus_distance_m: float, f_number: float) -> float:
     """``r(inf) = A f / ((D_fp - f) sqrt(2) p_x)``, pixels."""
     f = optics.focal_length_m
-    if not focus_distance_m > f:
-        raise ParameterError(
-            f"in-focus distance ({focus_distance_m} m) must exceed the focal length ({f} m)"
-        )
+    check_ordered(f, focus_distance_m, "focal_length_m", "focus_distance_m")
     aperture = f / f_number
     return aperture * f / ((focus_distance_m - f) * math.sqrt(2.0) * optics.pixel_pitch_m)
 
@@ -183,8 +178,8 @@ def blur_radius(
     (H, W) float64, pixels
     """
     optics = _optics(camera)
-    fn = optics.f_number if f_number is None else _positive("f_number", f_number)
-    scale = _radius_scale(optics, _positive("focus_distance_m", focus_distance_m), fn)
+    fn = optics.f_number if f_number is None else check_positive(f_number, "f_number")
+    scale = _radius_scale(optics, check_positive(focus_distance_m, "focus_distance_m"), fn)
     s = _focus_offset(np.asarray(depth, dtype=np.float64), focus_distance_m)
     return scale * np.abs(s)
 
@@ -210,11 +205,8 @@ def blur_kernel(radius: float, *, kernel: str = "disk") -> np.ndarray:
     -------
     (2 h + 1, 2 h + 1) float32, sums to 1
     """
-    if kernel not in KERNELS:
-        raise ParameterError(f"unknown kernel '{kernel}' (choose {', '.join(KERNELS)})")
-    r = float(radius)
-    if not (math.isfinite(r) and r >= 0):
-        raise ParameterError(f"blur radius must be finite and >= 0, got {radius}")
+    check_choice(kernel, "kernel", KERNELS)
+    r = check_non_negative(radius, "radius")
     if r == 0:
         return np.ones((1, 1), np.float32)
     half = int(math.floor(r + 0.5)) if kernel == "disk" else int(math.ceil(3.0 * r))
@@ -278,43 +270,27 @@ class DefocusParams:
     def __post_init__(self) -> None:
         set_ = object.__setattr__  # frozen: normalise once
         set_(self, "camera", _optics(self.camera))
-        set_(self, "focus_distance", _range("focus distance", self.focus_distance))
+        # (low, high) ranges, low > 0; one number fixes the value
+        set_(self, "focus_distance", check_pair(self.focus_distance, "focus_distance", low=0.0,
+                                                strict=True))  # fmt: skip
         if self.f_number is not None:
-            set_(self, "f_number", _range("f-number", self.f_number))
-        set_(self, "ratio", _range("exposure ratio", self.ratio))
-        if self.focus_distance[0] <= self.camera.focal_length_m:
-            raise ParameterError(
-                f"focus distance {self.focus_distance[0]} m must exceed the focal length "
-                f"({self.camera.focal_length_m} m)"
-            )
-        if self.kernel not in KERNELS:
-            raise ParameterError(f"unknown kernel '{self.kernel}' (choose {', '.join(KERNELS)})")
-        if self.missing not in MISSING_MODES:
-            raise ParameterError(f"missing must be one of {', '.join(MISSING_MODES)}")
-        if self.noise not in NOISE_MODELS:
-            raise ParameterError(f"unknown noise model '{self.noise}'")
-        if self.noise_camera != "random" and self.noise_camera not in CAMERA_PROFILES:
-            raise ParameterError(f"unknown noise camera '{self.noise_camera}'")
-        set_(self, "layer_step", _positive("layer step", self.layer_step))
-        set_(self, "max_radius", _positive("max radius", self.max_radius))
-        set_(self, "noise_gamma", _positive("noise gamma", self.noise_gamma))
-        if self.layer_step > self.max_radius:
-            raise ParameterError("layer step must not exceed the max radius")
+            set_(self, "f_number", check_pair(self.f_number, "f_number", low=0.0, strict=True))
+        set_(self, "ratio", check_pair(self.ratio, "ratio", low=0.0, strict=True))
+        check_ordered(self.camera.focal_length_m, self.focus_distance[0], "focal_length_m",
+                      "focus_distance")  # fmt: skip
+        check_choice(self.kernel, "kernel", KERNELS)
+        check_choice(self.missing, "missing", MISSING_MODES)
+        check_choice(self.noise, "noise", NOISE_MODELS)
+        check_choice(self.noise_camera, "noise_camera", (*CAMERA_PROFILES, "random"))
+        set_(self, "max_radius", check_positive(self.max_radius, "max_radius"))
+        # one layer spans layer_step pixels of radius: at most the whole range
+        layer_step = check_range(self.layer_step, "layer_step", low=0.0, low_open=True,
+                                 high=self.max_radius)  # fmt: skip
+        set_(self, "layer_step", layer_step)
+        set_(self, "noise_gamma", check_positive(self.noise_gamma, "noise_gamma"))
 
     def to_dict(self) -> dict:
         return asdict(self)
-
-
-def _range(name: str, r) -> tuple[float, float]:
-    if isinstance(r, (int, float)) and not isinstance(r, bool):
-        r = (r, r)  # one value: fixed
-    try:
-        a, b = (float(v) for v in r)
-    except (TypeError, ValueError):
-        raise ParameterError(f"{name} must be a (low, high) pair of numbers, got {r!r}") from None
-    if not (math.isfinite(a) and math.isfinite(b) and 0 < a <= b):
-        raise ParameterError(f"{name} range must satisfy 0 < low <= high, got {r!r}")
-    return (a, b)
 
 
 @dataclass(frozen=True)
@@ -391,7 +367,7 @@ class DefocusRecord:
                 missing=str(d["missing"]), noise=NoiseParams.from_dict(d["noise"]),
                 noise_gamma=float(d["noise_gamma"]), version=version,
             )  # fmt: skip
-        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:
             if isinstance(exc, ParameterError):
                 raise
             raise ParameterError(
@@ -409,39 +385,29 @@ class DefocusRecord:
 
     def _check(self) -> None:
         self.optics  # noqa: B018 (validates focal length, f-number and pitch)
-        _radius_scale(self.optics, _positive("focus distance", self.focus_distance_m),
+        _radius_scale(self.optics, check_positive(self.focus_distance_m, "focus_distance_m"),
                       self.f_number)  # fmt: skip
-        if self.kernel not in KERNELS or self.missing not in MISSING_MODES:
-            raise ParameterError(f"record has unknown kernel or missing mode: {self.kernel}, "
-                                 f"{self.missing}")  # fmt: skip
+        check_choice(self.kernel, "kernel", KERNELS)
+        check_choice(self.missing, "missing", MISSING_MODES)
         for name in ("layer_step", "max_radius", "noise_gamma"):
-            _positive(name, getattr(self, name))
+            check_positive(getattr(self, name), name)
 
 
 def _check_inputs(image, depth) -> tuple[np.ndarray, np.ndarray]:
-    if not isinstance(image, np.ndarray):
-        raise ParameterError(f"image must be a numpy array, got {type(image).__name__}")
-    if image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] not in (1, 3)):
-        raise ParameterError(f"image must be (H, W), (H, W, 1) or (H, W, 3), got {image.shape}")
-    if image.shape[0] == 0 or image.shape[1] == 0:
-        raise ParameterError(f"image is empty (shape {image.shape})")
+    check_array(image, "image")
+    check_shape(image, "(H, W) | (H, W, 1) | (H, W, 3)", "image", nonempty=True)
+    check_dtype(image, "image", (np.uint8, np.float32, np.float64))
     if image.dtype == np.uint8:
         img = image.astype(np.float32) / np.float32(255.0)
-    elif image.dtype in (np.float32, np.float64):
-        img = image.astype(np.float32)
-        if not np.all(np.isfinite(img)) or img.min() < 0 or img.max() > 1:
-            raise ParameterError("a float image must be finite and lie in [0, 1]")
     else:
-        raise ParameterError(f"image must be uint8 or float in [0, 1], got {image.dtype}")
+        img = image.astype(np.float32)
+        check_all_finite(img, "image")
+        check_values(img, "image", low=0.0, high=1.0)
     d = np.asarray(depth)
     if d.ndim == 3 and d.shape[2] == 1:
         d = d[:, :, 0]
-    if d.shape != image.shape[:2]:
-        raise ParameterError(
-            f"depth map is {d.shape} but the image is {image.shape[:2]} (H, W); they must match"
-        )
-    if not np.issubdtype(d.dtype, np.number):
-        raise ParameterError(f"depth must be numeric (metres), got dtype {d.dtype}")
+    check_shape(d, "({}, {})".format(*image.shape[:2]), "depth")  # the image's size
+    check_dtype(d, "depth", "fiu")
     return (img if img.ndim == 3 else img[:, :, None]), d.astype(np.float64)
 
 
@@ -557,12 +523,9 @@ def defocus(
     img, d = _check_inputs(image, depth)
     h, w = d.shape
     if record is not None:
+        check_instance(record, "record", (DefocusRecord, dict))
         if isinstance(record, dict):
             record = DefocusRecord.from_dict(record)
-        elif not isinstance(record, DefocusRecord):
-            raise ParameterError(
-                f"record must be a DefocusRecord or dict, got {type(record).__name__}"
-            )
         else:
             record._check()
         if (record.height, record.width) != (h, w):

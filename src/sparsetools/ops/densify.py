@@ -65,7 +65,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ParameterError
-from ..validate import check_choice, check_positive
+from ..validate import (
+    check_all_finite,
+    check_choice,
+    check_dtype,
+    check_flag,
+    check_instance,
+    check_range,
+    check_shape,
+    check_values,
+)
 from .raster import rasterise_triangles
 
 __all__ = [
@@ -193,8 +202,8 @@ class DensifySettings:
         check_choice(self.method, "method", DENSIFY_METHODS)
         check_choice(self.variant, "variant", VARIANTS)
         check_choice(self.outside, "outside", LINEAR_OUTSIDE)
-        _check_flag(self.extrapolate, "extrapolate")
-        _check_flag(self.multiscale, "multiscale")
+        check_flag(self.extrapolate, "extrapolate")
+        check_flag(self.multiscale, "multiscale")
         object.__setattr__(self, "max_depth", _check_max_depth(self.max_depth))
 
 
@@ -218,34 +227,25 @@ class IPBasicStage:
 # -- validation ---------------------------------------------------------------------------------
 
 
-def _check_flag(value, name: str) -> bool:
-    if not isinstance(value, (bool, np.bool_)):
-        raise ParameterError(f"must be True or False, got {value!r}", param=name)
-    return bool(value)
-
-
 def _check_max_depth(value) -> float:
-    v = check_positive(value, "max_depth")
-    if v <= 2 * _VALID:
-        raise ParameterError(f"must be > {2 * _VALID} m, got {value!r}", param="max_depth")
-    return v
+    # IP-Basic inverts max_depth - d on the depths in (_VALID, max_depth - _VALID).
+    return check_range(value, "inversion_offset", low=2 * _VALID, low_open=True)
 
 
 def _check_depth(depth) -> np.ndarray:
     """A float32 copy of a sparse (H, W) depth map in metres, 0 = empty."""
     d = np.asarray(depth)
-    if d.ndim != 2 or d.shape[0] < 1 or d.shape[1] < 1:
-        raise ParameterError(f"depth must be a non-empty (H, W) map, got shape {d.shape}")
-    if d.dtype.kind != "f":
+    check_shape(d, "(H, W)", "depth", nonempty=True)
+    if d.dtype.kind in "iu":  # most likely a depth PNG read as it is stored: say how to read it
         raise ParameterError(
-            f"depth must be float metres, got {d.dtype} (a KITTI uint16 PNG stores depth * 256: "
-            "read it with read_depth_png)"
+            f"must be float metres, got {d.dtype} (a KITTI uint16 PNG stores depth * 256: "
+            "read it with read_depth_png)",
+            param="depth",
         )
-    if not np.all(np.isfinite(d)):
-        raise ParameterError("depth holds NaN or Inf values (use 0 for empty pixels)")
+    check_dtype(d, "depth", "f")
+    check_all_finite(d, "depth")
     out = np.array(d, dtype=np.float32, order="C")  # always a copy: the steps work in place
-    if out.size and out.min() < 0:
-        raise ParameterError(f"depth must be >= 0 m (0 = empty), got a minimum of {out.min()}")
+    check_values(out, "depth", low=0.0)  # metres, 0 = empty
     return out
 
 
@@ -373,8 +373,8 @@ def _ip_basic(depth, *, variant, extrapolate, multiscale, max_depth, stages):
     d = _check_depth(depth)
     measured = d > 0
     check_choice(variant, "variant", VARIANTS)
-    _check_flag(extrapolate, "extrapolate")
-    _check_flag(multiscale, "multiscale")
+    check_flag(extrapolate, "extrapolate")
+    check_flag(multiscale, "multiscale")
     max_depth = _check_max_depth(max_depth)
     depth_in = d.copy() if multiscale else None
     s = _invert(d, max_depth)
@@ -563,8 +563,7 @@ def densify(depth: np.ndarray, settings: DensifySettings | None = None) -> Densi
     DensifyResult
     """
     s = DensifySettings() if settings is None else settings
-    if not isinstance(s, DensifySettings):
-        raise ParameterError(f"must be a DensifySettings, got {type(s).__name__}", param="settings")
+    check_instance(s, "settings", DensifySettings)
     if s.method == "nearest":
         return fill_nearest(depth)
     if s.method == "linear":

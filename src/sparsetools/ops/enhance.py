@@ -18,11 +18,10 @@ uint8. It differs from the default by at most one level per entry.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from ..errors import ParameterError
+from ..validate import check_array, check_choice, check_dtype, check_positive, check_shape
 
 __all__ = ["ROUNDINGS", "apply_lut", "mcie_lut"]
 
@@ -30,18 +29,12 @@ __all__ = ["ROUNDINGS", "apply_lut", "mcie_lut"]
 ROUNDINGS = ("nearest", "rnw")
 
 
-def _check_rgb8(image: np.ndarray, what: str) -> np.ndarray:
-    if not isinstance(image, np.ndarray):
-        raise ParameterError(f"{what} must be a numpy array, got {type(image).__name__}")
-    if image.dtype != np.uint8:
-        raise ParameterError(f"{what} must be 8-bit (uint8), got {image.dtype}")
-    if image.ndim == 2:
-        image = image[:, :, None]
-    if image.ndim != 3 or image.shape[2] not in (1, 3):
-        raise ParameterError(f"{what} must be (H, W) or (H, W, 3), got shape {image.shape}")
-    if image.shape[0] * image.shape[1] == 0:
-        raise ParameterError(f"{what} is empty (shape {image.shape})")
-    return image
+def _check_rgb8(image: np.ndarray, name: str) -> np.ndarray:
+    """``image`` as (H, W, C) uint8, C = 1 or 3."""
+    check_array(image, name)
+    check_dtype(image, name, (np.uint8,))
+    check_shape(image, "(H, W) | (H, W, 1) | (H, W, 3)", name, nonempty=True)
+    return image[:, :, None] if image.ndim == 2 else image
 
 
 def mcie_lut(
@@ -73,20 +66,20 @@ def mcie_lut(
         the identity mapping.
     """
     if bins != 256:
-        raise ParameterError(f"MCIE works on 8-bit images with 256 bins, got bins={bins}")
-    if not (math.isfinite(clip) and clip > 0):
-        raise ParameterError(f"clip limit must be > 0, got {clip}")
-    if rounding not in ROUNDINGS:
-        raise ParameterError(f"unknown rounding '{rounding}' (choose {', '.join(ROUNDINGS)})")
-    ref = _check_rgb8(reference, "reference frame")
+        raise ParameterError(
+            f"MCIE works on 8-bit images with 256 bins, got bins={bins}", param="bins"
+        )
+    check_positive(clip, "clip")
+    check_choice(rounding, "rounding", ROUNDINGS)
+    ref = _check_rgb8(reference, "reference")
     n_pix = ref.shape[0] * ref.shape[1]
     lut = np.empty((256, ref.shape[2]), np.uint8)
     for c in range(ref.shape[2]):
         counts = np.bincount(ref[:, :, c].ravel(), minlength=256)
         if rounding == "rnw":
-            lut[:, c] = _rnw_table(counts, int(clip * n_pix))
+            lut[:, c] = _rnw_table(counts, int(min(clip, 1.0) * n_pix))  # >= 1: no clipping
         else:
-            lut[:, c] = _nearest_table(counts, clip * n_pix)
+            lut[:, c] = _nearest_table(counts, min(clip, 1.0) * n_pix)
     return lut
 
 
@@ -136,13 +129,13 @@ def apply_lut(image: np.ndarray, lut: np.ndarray) -> np.ndarray:
 
     img = _check_rgb8(image, "image")
     lut = np.asarray(lut)
-    if lut.dtype != np.uint8 or lut.shape[0] != 256 or lut.ndim not in (1, 2):
-        raise ParameterError(f"lut must be (256,) or (256, C) uint8, got {lut.dtype} {lut.shape}")
+    check_shape(lut, "(256) | (256, C)", "lut")
+    check_dtype(lut, "lut", (np.uint8,))
     if lut.ndim == 2 and lut.shape[1] == 1:
         lut = lut[:, 0]
     channels = img.shape[2]
-    if lut.ndim == 2 and lut.shape[1] != channels:
-        raise ParameterError(f"lut has {lut.shape[1]} channels but the image has {channels}")
+    if lut.ndim == 2:
+        check_shape(lut, f"(256, {channels})", "lut")  # one table per channel of the image
     if lut.ndim == 1:
         table = np.ascontiguousarray(lut.reshape(1, 256))
         out = cv2.LUT(np.ascontiguousarray(img), table)

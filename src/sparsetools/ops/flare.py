@@ -27,6 +27,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from ..errors import ParameterError
+from ..validate import check_int_range, check_odd, check_pair, check_positive, check_shape
 
 __all__ = [
     "BANK_VERSION",
@@ -221,12 +222,12 @@ def build_flare_bank(
     ghosts : int
         Number of ghost shapes.
     """
-    if not 1 <= count <= 256:
-        raise ParameterError(f"flare bank count must be in 1..256, got {count}")
-    if not (32 <= size <= 1024 and size % 2 == 0):
-        raise ParameterError(f"flare pattern size must be even and in 32..1024, got {size}")
-    if not 1 <= ghosts <= 64:
-        raise ParameterError(f"ghost count must be in 1..64, got {ghosts}")
+    count = check_int_range(count, "count", low=1, high=256)
+    size = check_int_range(size, "size", low=32, high=1024)
+    if size % 2:
+        raise ParameterError(f"must be even (a pattern centred between pixels), got {size}",
+                             param="size")  # fmt: skip
+    ghosts = check_int_range(ghosts, "ghosts", low=1, high=64)
     made = [_make_pattern(seed, i, size) for i in range(count)]
     patterns = np.stack([m[0] for m in made])
     ghost_arr = np.stack([_make_ghost(seed, i) for i in range(ghosts)])
@@ -255,7 +256,10 @@ def flare_bank(*, seed: int = 0, count: int = 16, size: int = 256) -> FlareBank:
         Read-only arrays. An on-disk copy (to build it once for a whole process pool) is
         :func:`sparsetools.io.flare_bank.cached_flare_bank`.
     """
-    return _cached_bank(int(seed), int(count), int(size))
+    seed = check_int_range(seed, "seed")
+    count = check_int_range(count, "count", low=1, high=256)
+    size = check_int_range(size, "size", low=32, high=1024)
+    return _cached_bank(seed, count, size)
 
 
 # --------------------------------------------------------------------------- placement
@@ -384,6 +388,16 @@ def sample_flares(
         ``source`` ("depth", "uniform" or "depth-none-in-range": no eligible pixel, so no flare),
         ``scale``, ``amount``, ``count`` and ``flares`` (list of :class:`FlareRecord`).
     """
+    check_int_range(height, "height", low=1)
+    check_int_range(width, "width", low=1)
+    check_pair(scale_range, "scale_range", low=0.0, strict=True)
+    check_pair(amount_range, "amount_range", low=0.0, strict=True)
+    check_pair(count_range, "count_range", low=0, integer=True)
+    check_positive(max_depth, "max_depth")
+    if depth is not None:
+        check_shape(np.asarray(depth), f"({height}, {width})", "depth")
+    if intrinsics is not None:
+        check_shape(np.asarray(intrinsics), "(3, 3)", "intrinsics")
     s_f = math.exp(rng.uniform(math.log(scale_range[0]), math.log(scale_range[1])))
     amount = math.exp(rng.uniform(math.log(amount_range[0]), math.log(amount_range[1])))
     n_f = max(math.floor(amount / s_f + 0.5), 1)
@@ -477,14 +491,16 @@ def render_flares(
     """
     import cv2
 
+    check_int_range(height, "height", low=1)
+    check_int_range(width, "width", low=1)
+    check_positive(gamma, "gamma")
     canvas = np.zeros((height, width, 3), np.float64)
     for f in flares:
         if not 0 <= f.pattern < bank.count:
             raise ParameterError(
                 f"flare pattern {f.pattern} is not in the bank (0..{bank.count - 1})"
             )
-        if f.side < 1 or f.side % 2 == 0:
-            raise ParameterError(f"flare side must be a positive odd pixel count, got {f.side}")
+        check_odd(f.side, "side", low=1)  # pixels, centred on the light source
         sprite = _resized(bank.patterns[f.pattern], f.side)
         c = (f.side - 1) / 2
         M = cv2.getRotationMatrix2D((c, c), f.rotation, 1.0)

@@ -12,7 +12,7 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from ..errors import ParameterError
+from ..validate import check_positive, check_same_shape, check_shape
 
 __all__ = ["INTRINSIC_KEYS", "intrinsic_error", "mean_intrinsic_error"]
 
@@ -44,16 +44,10 @@ def intrinsic_error(expanded: np.ndarray, lidar: np.ndarray, *, max_depth: float
     """
     r = np.asarray(expanded)
     l = np.asarray(lidar)
-    if r.ndim != 2 or l.ndim != 2:
-        raise ParameterError(
-            f"expanded and lidar must be (H, W) depth maps, got shapes {r.shape} and {l.shape}"
-        )
-    if r.shape != l.shape:
-        raise ParameterError(
-            f"expanded depth is {r.shape[1]}x{r.shape[0]} but lidar is {l.shape[1]}x{l.shape[0]}"
-        )
-    if not (math.isfinite(max_depth) and max_depth > 0):
-        raise ParameterError(f"max_depth must be finite and > 0, got {max_depth}")
+    check_shape(r, "(H, W)", "expanded")
+    check_shape(l, "(H, W)", "lidar")
+    check_same_shape(r, l, "expanded", "lidar")
+    check_positive(max_depth, "max_depth")
     r = r.astype(np.float64, copy=False)
     l = l.astype(np.float64, copy=False)
     r_valid = np.isfinite(r) & (r > 0)

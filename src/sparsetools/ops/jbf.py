@@ -28,18 +28,23 @@ import os
 import numpy as np
 
 from ..errors import ParameterError
+from ..validate import (
+    check_choice,
+    check_dtype,
+    check_int_range,
+    check_non_negative,
+    check_positive,
+    check_probability,
+    check_same_shape,
+    check_shape,
+)
 from ._jbf_kernels import (
     _offset_table,  # noqa: F401 - looked up here by the tests (cache check)
-    band_gray,
-    band_rgb,
-    expand_gray,
-    expand_rgb,
+    band,
+    expand,
     mark_seeds,
     prologue,
 )
-
-# The single-threaded kernels under the names the tests look up (cache checks).
-_expand_gray, _expand_rgb = expand_gray, expand_rgb
 
 __all__ = [
     "CONFLICTS",
@@ -63,33 +68,27 @@ def pruning_radius(sigma_s: float, threshold: float) -> int:
     no pixel farther than ``r_max`` from its seed can reach the threshold, so pruning there is
     exact.
     """
+    check_positive(sigma_s, "sigma_s")
+    check_probability(threshold, "threshold")
     return int(math.ceil(sigma_s * math.sqrt(2.0 * math.log(1.0 / threshold))))
-
-
-def _check_positive(name: str, value) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ParameterError(f"{name} must be a number, got {value!r}") from None
-    if not math.isfinite(v) or v <= 0:
-        raise ParameterError(f"{name} must be finite and > 0, got {value!r}")
-    return v
 
 
 def _check_radar(radar_depth) -> np.ndarray:
     radar = np.asarray(radar_depth)
-    if radar.ndim != 2:
-        raise ParameterError(f"radar_depth must be a 2-D (H, W) depth map, got shape {radar.shape}")
-    if radar.dtype.kind != "f":
+    check_shape(radar, "(H, W)", "radar_depth")
+    if radar.dtype.kind in "iu":  # most likely a depth PNG read as it is stored: say how to read it
         if radar.dtype.itemsize == 1:
             raise ParameterError(
-                f"radar_depth is 8-bit ({radar.dtype}): it cannot hold metric depth; pass float "
-                "metres (read_depth_png converts a KITTI uint16 PNG)"
+                f"is 8-bit ({radar.dtype}): it cannot hold metric depth; pass float metres "
+                "(read_depth_png converts a KITTI uint16 PNG)",
+                param="radar_depth",
             )
         raise ParameterError(
-            f"radar_depth must be float metres, got {radar.dtype} (a KITTI uint16 PNG stores "
-            "depth * 256: read it with read_depth_png)"
+            f"must be float metres, got {radar.dtype} (a KITTI uint16 PNG stores depth * 256: "
+            "read it with read_depth_png)",
+            param="radar_depth",
         )
+    check_dtype(radar, "radar_depth", "f")
     if radar.dtype not in (np.float32, np.float64):
         radar = radar.astype(np.float32)
     return radar
@@ -115,15 +114,9 @@ def _guidance_for(guidance, shape: tuple[int, int], range_metric: str, *, kernel
     g = np.asarray(guidance)
     if g.ndim == 3 and g.shape[2] == 1:
         g = g[:, :, 0]
-    if g.ndim not in (2, 3) or (g.ndim == 3 and g.shape[2] != 3):
-        raise ParameterError(f"guidance must be (H, W) or (H, W, 3), got shape {g.shape}")
-    if g.dtype != np.uint8:
-        raise ParameterError(f"guidance must be uint8 (0..255), got {g.dtype}")
-    if g.shape[:2] != shape:
-        raise ParameterError(
-            f"guidance is {g.shape[1]}x{g.shape[0]} but the radar depth map is "
-            f"{shape[1]}x{shape[0]} (W x H): they must have the same size"
-        )
+    check_shape(g, "(H, W) | (H, W, 3)", "guidance")
+    check_dtype(g, "guidance", (np.uint8,))
+    check_same_shape(g, np.empty(shape, np.bool_), "guidance", "radar_depth", dims=2)
     if g.ndim == 3:
         if kernel == "spatial":
             g = g[:, :, 0]  # never looked at: skip the conversion
@@ -210,31 +203,24 @@ def jbf_expand(
     two returned arrays are views of one (2, H, W) buffer (one allocation instead of two).
     """
     radar = _check_radar(radar_depth)
-    fx = _check_positive("fx", fx)
-    fy = _check_positive("fy", fy)
-    sigma_s = _check_positive("sigma_s", sigma_s)
-    sigma_r = _check_positive("sigma_r", sigma_r)
-    threshold = float(threshold)
-    if not (0.0 < threshold <= 1.0):
-        raise ParameterError(f"threshold must be in (0, 1], got {threshold}")
+    fx = check_positive(fx, "fx")
+    fy = check_positive(fy, "fy")
+    sigma_s = check_positive(sigma_s, "sigma_s")
+    sigma_r = check_positive(sigma_r, "sigma_r")
+    threshold = check_probability(threshold, "threshold")
     try:
-        w_m, h_m = (float(v) for v in window_m)
+        w_m, h_m = window_m
     except (TypeError, ValueError):
         raise ParameterError(
-            f"window_m must be two numbers (w, h) in metres, got {window_m!r}"
+            f"must be two numbers (w, h) in metres, got {window_m!r}", param="window_m"
         ) from None
-    w_m = _check_positive("window width", w_m)
-    h_m = _check_positive("window height", h_m)
-    if kernel not in KERNELS:
-        raise ParameterError(f"kernel must be one of {', '.join(KERNELS)}, got {kernel!r}")
-    if range_metric not in RANGE_METRICS:
-        raise ParameterError(
-            f"range_metric must be one of {', '.join(RANGE_METRICS)}, got {range_metric!r}"
-        )
-    if conflict not in CONFLICTS:
-        raise ParameterError(f"conflict must be one of {', '.join(CONFLICTS)}, got {conflict!r}")
-    if threads is not None and (int(threads) != threads or threads < 1):
-        raise ParameterError(f"threads must be a positive integer, got {threads!r}")
+    w_m = check_positive(w_m, "window_m")
+    h_m = check_positive(h_m, "window_m")
+    check_choice(kernel, "kernel", KERNELS)
+    check_choice(range_metric, "range_metric", RANGE_METRICS)
+    check_choice(conflict, "conflict", CONFLICTS)
+    if threads is not None:
+        threads = check_int_range(threads, "threads", low=1)
     guide = _guidance_for(guidance, radar.shape, range_metric, kernel=kernel)
 
     rows, cols, depths = _seeds(radar)
@@ -348,7 +334,10 @@ def _expand(
     height, width = guide.shape[:2]
     use_spatial = kernel in ("jbf", "spatial")
     use_range = kernel in ("jbf", "range")
-    rgb = guide.ndim == 3
+    # One kernel for any channel count: the guidance as (H, W, C), and C as the length of a
+    # tuple, which numba compiles into the kernel (one machine code per C).
+    guide = guide.reshape(height, width, -1)
+    channels = tuple(range(guide.shape[2]))
 
     # Squared distances are integers, so both Gaussians are tables indexed by them. Entries
     # past a table can never pass the threshold (each kernel is <= 1), which makes the cut
@@ -367,7 +356,7 @@ def _expand(
     else:
         spatial_lut = np.ones(1, dtype=np.float64)
     if use_range:
-        max_sq = 255 * 255 * (3 if rgb else 1)
+        max_sq = 255 * 255 * len(channels)
         cut = 2.0 * sigma_r**2 * math.log(1.0 / threshold)
         n = int(min(max_sq, math.ceil(cut))) + 1
         dI2 = np.arange(n, dtype=np.float64)
@@ -391,6 +380,7 @@ def _expand(
         np.ascontiguousarray(half_u[order], dtype=np.int64),
         np.ascontiguousarray(half_v[order], dtype=np.int64),
         np.ascontiguousarray(guide),
+        channels,
         spatial_lut,
         range_lut,
         use_spatial,
@@ -401,21 +391,20 @@ def _expand(
         out[1],
     )
     if edges is None:
-        (expand_rgb if rgb else expand_gray)(*args)
+        expand(*args)
     else:
-        _expand_bands(args, rgb, [int(e) for e in edges])
+        _expand_bands(args, [int(e) for e in edges])
     return out[0], out[1]
 
 
-def _expand_bands(args, rgb: bool, edges: list[int]) -> None:
+def _expand_bands(args, edges: list[int]) -> None:
     """The compiled expansion on row bands ``edges[b]:edges[b + 1]``, one per thread."""
-    (rows, cols, depths, half_u, half_v, guide, spatial_lut, range_lut, use_spatial, use_range,
-     threshold, max_confidence, depth, conf) = args  # fmt: skip
+    (rows, cols, depths, half_u, half_v, guide, channels, spatial_lut, range_lut, use_spatial,
+     use_range, threshold, max_confidence, depth, conf) = args  # fmt: skip
     tables = prologue(rows, cols, depths, spatial_lut, range_lut, use_spatial, use_range,
                       threshold, depth, conf)  # fmt: skip
-    band = band_rgb if rgb else band_gray
-    head = (rows, cols, depths, half_u, half_v, guide, spatial_lut, range_lut, use_spatial,
-            use_range, max_confidence, *tables, depth, conf)  # fmt: skip
+    head = (rows, cols, depths, half_u, half_v, guide, channels, spatial_lut, range_lut,
+            use_spatial, use_range, max_confidence, *tables, depth, conf)  # fmt: skip
     bands = list(itertools.pairwise(edges))
     pool = _thread_pool(len(bands) - 1) if len(bands) > 1 else None
     futures = [pool.submit(band, *head, lo, hi) for lo, hi in bands[1:]]
@@ -447,10 +436,9 @@ def height_extend(
     (H, W) float32, metres, 0 = empty.
     """
     radar = _check_radar(radar_depth)
-    fy = _check_positive("fy", fy)
-    for name, v in (("below_m", below_m), ("above_m", above_m)):
-        if not (math.isfinite(float(v)) and float(v) >= 0):
-            raise ParameterError(f"{name} must be finite and >= 0, got {v!r}")
+    fy = check_positive(fy, "fy")
+    check_non_negative(below_m, "below_m")
+    check_non_negative(above_m, "above_m")
     height, width = radar.shape
     rows, cols, depths = _seeds(radar)
     out = np.full(height * width, np.inf, dtype=np.float32)

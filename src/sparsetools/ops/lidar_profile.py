@@ -16,6 +16,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import FormatError, ParameterError
+from ..validate import (
+    check_dtype,
+    check_int_range,
+    check_non_negative,
+    check_nonempty,
+    check_points,
+    check_shape,
+    check_values,
+)
 
 __all__ = ["SensorProfile", "fit_sensor_profile"]
 
@@ -32,19 +41,17 @@ _OFFSET_BOUND = 0.5
 # -- input checks --------------------------------------------------------------------------------
 
 
-def _check_points(points: np.ndarray, *, allow_empty: bool = False) -> np.ndarray:
+def _check_points(
+    points: np.ndarray, *, allow_empty: bool = False, name: str = "points"
+) -> np.ndarray:
+    """``points`` as an array: (N, C>=3), real numbers, x, y, z finite."""
     points = np.asarray(points)
-    if points.ndim != 2 or points.shape[1] < 3:
-        raise ParameterError(
-            f"points must be (N, C>=3) with x, y, z first, got shape {points.shape}"
-        )
-    if points.dtype.kind not in "fiu":
-        raise ParameterError(f"points must be numeric, got dtype {points.dtype}")
-    if points.shape[0] == 0 and not allow_empty:
-        raise ParameterError("the cloud has no points")
-    if not _finite_xyz(points):
+    check_points(points, name, nonempty=not allow_empty)
+    if not _finite_xyz(points):  # the ring and beam fits have no use for such points
         bad = int(np.count_nonzero(~np.isfinite(points[:, :3]).all(axis=1)))
-        raise ParameterError(f"{bad} point(s) have NaN/Inf coordinates; drop them first")
+        raise ParameterError(
+            f"{bad} point(s) have NaN/Inf coordinates; drop them first", param=name
+        )
     return points
 
 
@@ -63,22 +70,15 @@ def _finite_xyz(points: np.ndarray) -> bool:
 
 
 def _check_n_lasers(n_lasers: int) -> int:
-    if int(n_lasers) != n_lasers or n_lasers < 1 or n_lasers > 256:
-        raise ParameterError(f"n_lasers must be an integer in 1..256, got {n_lasers}")
-    return int(n_lasers)
+    return check_int_range(n_lasers, "n_lasers", low=1, high=256)
 
 
 def _check_ring(ring: np.ndarray, n_points: int, n_lasers: int) -> np.ndarray:
+    """``ring`` as an array: one integer in 0..n_lasers-1 per point."""
     ring = np.asarray(ring)
-    if ring.shape != (n_points,):
-        raise ParameterError(f"ring must have shape ({n_points},), got {ring.shape}")
-    if ring.dtype.kind not in "iu":
-        raise ParameterError(f"ring must hold integers, got dtype {ring.dtype}")
-    if ring.size and (ring.min() < 0 or ring.max() >= n_lasers):
-        raise ParameterError(
-            f"ring values must lie in 0..{n_lasers - 1}, got {ring.min()}..{ring.max()} "
-            "(wrong n_lasers?)"
-        )
+    check_shape(ring, f"({n_points})", "ring")
+    check_dtype(ring, "ring", "iu")
+    check_values(ring, "ring", low=0, high=n_lasers - 1)  # one of the n_lasers lasers
     return ring
 
 
@@ -251,8 +251,15 @@ def fit_sensor_profile(
     Every laser needs at least 3 points over a spread of ranges (for the cone fit).
     """
     n_lasers = _check_n_lasers(n_lasers)
-    if len(clouds) != len(rings) or not clouds:
-        raise ParameterError("give one ring array per cloud (at least one cloud)")
+    check_non_negative(far_range, "far_range")
+    check_non_negative(reference_range, "reference_range")
+    check_int_range(min_far_points, "min_far_points", low=0)
+    check_nonempty(clouds, "clouds")
+    if len(clouds) != len(rings):
+        raise ParameterError(
+            f"give one ring array per cloud: {len(clouds)} clouds, {len(rings)} ring arrays",
+            param="rings",
+        )
     pts = np.vstack([_check_points(c)[:, :3].astype(np.float64) for c in clouds])
     ring = np.concatenate(
         [_check_ring(rg, c.shape[0], n_lasers) for c, rg in zip(clouds, rings, strict=True)]

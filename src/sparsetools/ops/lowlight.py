@@ -14,12 +14,22 @@ plain JSON-serialisable dataclass; ``lowlight(image, record=record)`` replays it
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
 
 from ..errors import ParameterError
+from ..validate import (
+    check_all_finite,
+    check_array,
+    check_choice,
+    check_dtype,
+    check_flag,
+    check_instance,
+    check_pair,
+    check_positive,
+    check_shape,
+)
 from .flare import BANK_VERSION, FlareBank, FlareRecord, flare_bank, render_flares, sample_flares
 from .noise import CAMERA_PROFILES, NOISE_MODELS, NoiseParams, add_sensor_noise, sample_noise_params
 
@@ -27,21 +37,6 @@ __all__ = ["RECORD_VERSION", "LowLightParams", "LowLightRecord", "lowlight"]
 
 #: Version of the record layout (stored in every record).
 RECORD_VERSION = 1
-
-
-def _check_range(name: str, r, *, low: float = 0.0, strict: bool = True, high: float = math.inf):
-    try:
-        a, b = (float(v) for v in r)
-    except (TypeError, ValueError):
-        raise ParameterError(f"{name} must be a (low, high) pair of numbers, got {r!r}") from None
-    if not (math.isfinite(a) and math.isfinite(b)):
-        raise ParameterError(f"{name} must be finite, got {r!r}")
-    if a > b:
-        raise ParameterError(f"{name} range is inverted ({a} > {b})")
-    if (a <= low if strict else a < low) or b > high:
-        op = ">" if strict else ">="
-        raise ParameterError(f"{name} must be {op} {low} and <= {high}, got ({a}, {b})")
-    return (a, b)
 
 
 @dataclass(frozen=True)
@@ -102,27 +97,18 @@ class LowLightParams:
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__  # frozen: normalise the tuples once
-        set_(self, "brightness", _check_range("brightness", self.brightness, high=10.0))
-        set_(self, "gamma", _check_range("gamma", self.gamma, high=10.0))
-        set_(self, "flare_scale", _check_range("flare scale", self.flare_scale, high=10.0))
-        set_(self, "flare_amount", _check_range("flare amount", self.flare_amount, high=1e4))
-        set_(self, "ratio", _check_range("exposure ratio", self.ratio, high=1e6))
-        lo, hi = _check_range("flare count", self.flare_count, low=1, strict=False, high=1000)
-        if lo != int(lo) or hi != int(hi):
-            raise ParameterError(f"flare count must be integers, got {self.flare_count}")
-        set_(self, "flare_count", (int(lo), int(hi)))
-        if not (math.isfinite(self.flare_max_depth) and self.flare_max_depth > 0):
-            raise ParameterError(f"flare max depth must be > 0 m, got {self.flare_max_depth}")
-        if not isinstance(self.color_bias, (bool, np.bool_)):
-            raise ParameterError(f"color_bias must be True or False, got {self.color_bias!r}")
-        if self.noise not in NOISE_MODELS:
-            raise ParameterError(
-                f"unknown noise model '{self.noise}' (choose {', '.join(NOISE_MODELS)})"
-            )
-        if self.camera != "random" and self.camera not in CAMERA_PROFILES:
-            raise ParameterError(
-                f"unknown camera '{self.camera}' (choose {', '.join(CAMERA_PROFILES)} or random)"
-            )
+        # (low, high) ranges with low > 0; the upper bounds keep the draws in float range.
+        highs = {"brightness": 10.0, "gamma": 10.0, "flare_scale": 10.0, "flare_amount": 1e4,
+                 "ratio": 1e6}  # fmt: skip
+        for name, high in highs.items():
+            pair = check_pair(getattr(self, name), name, low=0.0, strict=True, high=high)
+            set_(self, name, pair)
+        count = check_pair(self.flare_count, "flare_count", low=1, high=1000, integer=True)
+        set_(self, "flare_count", count)
+        check_positive(self.flare_max_depth, "flare_max_depth")
+        check_flag(self.color_bias, "color_bias")
+        check_choice(self.noise, "noise", NOISE_MODELS)
+        check_choice(self.camera, "camera", (*CAMERA_PROFILES, "random"))
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -239,24 +225,20 @@ class LowLightRecord:
 
 
 def _check_image(image: np.ndarray) -> np.ndarray:
-    if not isinstance(image, np.ndarray):
-        raise ParameterError(f"image must be a numpy array, got {type(image).__name__}")
-    if image.dtype != np.uint8:
-        hint = (
-            " (16-bit: scale it to 8 bits first, e.g. image >> 8)"
-            if image.dtype == np.uint16
-            else ""
+    """An (H, W, 3) uint8 RGB image; the two likely mistakes (16-bit, grey) say what to do."""
+    check_array(image, "image")
+    if image.dtype == np.uint16:
+        raise ParameterError(
+            "is 16-bit (uint16): scale it to 8 bits first, e.g. image >> 8", param="image"
         )
-        raise ParameterError(f"lowlight expects an 8-bit RGB image, got dtype {image.dtype}{hint}")
+    check_dtype(image, "image", (np.uint8,))
     if image.ndim == 2 or (image.ndim == 3 and image.shape[2] == 1):
         raise ParameterError(
-            f"lowlight expects an (H, W, 3) RGB image, got a grey image of shape {image.shape} "
-            "(replicate it to three channels, as sparsetools.read_image does)"
+            f"is a grey image of shape {image.shape}: replicate it to three channels (H, W, 3), "
+            "as sparsetools.read_image does",
+            param="image",
         )
-    if image.ndim != 3 or image.shape[2] != 3:
-        raise ParameterError(f"lowlight expects an (H, W, 3) RGB image, got shape {image.shape}")
-    if image.shape[0] == 0 or image.shape[1] == 0:
-        raise ParameterError(f"image is empty (shape {image.shape})")
+    check_shape(image, "(H, W, 3)", "image", nonempty=True)
     return image
 
 
@@ -266,13 +248,8 @@ def _check_depth(depth, shape: tuple[int, int]) -> np.ndarray | None:
     d = np.asarray(depth)
     if d.ndim == 3 and d.shape[2] == 1:
         d = d[:, :, 0]
-    if d.shape != shape:
-        raise ParameterError(
-            f"depth map is {d.shape[1] if d.ndim > 1 else '?'}x{d.shape[0]} but the image is "
-            f"{shape[1]}x{shape[0]} (W x H); they must be the same size"
-        )
-    if not np.issubdtype(d.dtype, np.number):
-        raise ParameterError(f"depth must be numeric (metres), got dtype {d.dtype}")
+    check_shape(d, "({}, {})".format(*shape), "depth")  # the image's size
+    check_dtype(d, "depth", "fiu")
     return d
 
 
@@ -282,10 +259,10 @@ def _check_intrinsics(K) -> np.ndarray | None:
     K = np.asarray(K, dtype=np.float64)
     if K.shape == (3, 4):
         K = K[:, :3]
-    if K.shape != (3, 3) or not np.all(np.isfinite(K)):
-        raise ParameterError(f"intrinsics K must be a finite 3x3 matrix, got shape {K.shape}")
+    check_shape(K, "(3, 3)", "K")
+    check_all_finite(K, "K")
     if abs(np.linalg.det(K)) < 1e-12:
-        raise ParameterError("intrinsics K is singular")
+        raise ParameterError("intrinsics K is singular", param="K")
     return K
 
 
@@ -344,8 +321,8 @@ def _sample(
 
 def _compose(image: np.ndarray, record: LowLightRecord, bank: FlareBank | None) -> np.ndarray:
     s_b, g = record.brightness, record.gamma
-    if not (math.isfinite(s_b) and s_b > 0 and math.isfinite(g) and g > 0):
-        raise ParameterError(f"record has invalid brightness {s_b} or gamma {g}")
+    check_positive(s_b, "brightness")
+    check_positive(g, "gamma")
     # (s_b I)^g through a 256-entry table: exact and far cheaper than a per-pixel power.
     lut = (s_b * np.arange(256, dtype=np.float64) / 255.0) ** g
     linear = lut[image]
@@ -413,12 +390,9 @@ def lowlight(
     depth = _check_depth(depth, (h, w))
     K = _check_intrinsics(K)
     if record is not None:
+        check_instance(record, "record", (LowLightRecord, dict))
         if isinstance(record, dict):
             record = LowLightRecord.from_dict(record)
-        elif not isinstance(record, LowLightRecord):
-            raise ParameterError(
-                f"record must be a LowLightRecord or dict, got {type(record).__name__}"
-            )
         if (record.height, record.width) != (h, w):
             raise ParameterError(
                 f"record was drawn for a {record.width}x{record.height} image, got {w}x{h}"

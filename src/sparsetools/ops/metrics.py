@@ -33,6 +33,14 @@ from collections.abc import Iterable, Mapping
 import numpy as np
 
 from ..errors import ParameterError
+from ..validate import (
+    check_dtype,
+    check_int_range,
+    check_ordered,
+    check_positive,
+    check_same_shape,
+    check_shape,
+)
 
 __all__ = [
     "METRIC_NAMES",
@@ -69,8 +77,8 @@ def garg_crop_mask(height: int, width: int) -> np.ndarray:
     Rows ``[0.40810811 H, 0.99189189 H)`` and columns ``[0.03594771 W, 0.96405229 W)``,
     truncated to integers as monodepth2 does.
     """
-    if height <= 0 or width <= 0:
-        raise ParameterError(f"image size must be positive, got {width}x{height}")
+    height = check_int_range(height, "height", low=1)
+    width = check_int_range(width, "width", low=1)
     top, bottom, left, right = np.array(
         [0.40810811 * height, 0.99189189 * height, 0.03594771 * width, 0.96405229 * width]
     ).astype(np.int32)
@@ -120,17 +128,14 @@ def depth_metrics(
     """
     pred = np.asarray(pred)
     gt = np.asarray(gt)
-    if pred.ndim != 2 or gt.ndim != 2:
-        raise ParameterError(
-            f"pred and gt must be (H, W) depth maps, got shapes {pred.shape} and {gt.shape}"
-        )
-    if pred.shape != gt.shape:
-        raise ParameterError(f"pred {pred.shape} and gt {gt.shape} differ in size")
-    if not (0 < min_depth < max_depth) or not math.isfinite(max_depth):
-        raise ParameterError(
-            f"need 0 < min_depth < max_depth < inf, got min_depth={min_depth}, "
-            f"max_depth={max_depth}"
-        )
+    check_shape(pred, "(H, W)", "pred")
+    check_shape(gt, "(H, W)", "gt")
+    check_same_shape(pred, gt, "pred", "gt")
+    check_dtype(pred, "pred", "fiu")
+    check_dtype(gt, "gt", "fiu")
+    check_positive(min_depth, "min_depth")
+    check_positive(max_depth, "max_depth")
+    check_ordered(min_depth, max_depth, "min_depth", "max_depth")
     g = gt.astype(np.float64)
     with np.errstate(invalid="ignore"):
         valid = np.isfinite(g) & (g > min_depth) & (g < max_depth)

@@ -36,6 +36,17 @@ from types import MappingProxyType
 import numpy as np
 
 from ..errors import FormatError, ParameterError
+from ..validate import (
+    check_all_finite,
+    check_choice,
+    check_int_range,
+    check_non_negative,
+    check_pair,
+    check_positive,
+    check_range,
+    check_shape,
+    check_values,
+)
 
 __all__ = [
     "CAMERA_PROFILES",
@@ -226,12 +237,7 @@ class NoiseParams:
 
 def camera_profile(name: str) -> CameraProfile:
     """Profile by name (:data:`CAMERA_PROFILES`), with a clear error for unknown names."""
-    try:
-        return CAMERA_PROFILES[name]
-    except KeyError:
-        raise ParameterError(
-            f"unknown camera '{name}' (choose {', '.join(CAMERA_PROFILES)})"
-        ) from None
+    return CAMERA_PROFILES[check_choice(name, "camera", CAMERA_PROFILES)]
 
 
 def sample_noise_params(
@@ -266,11 +272,8 @@ def sample_noise_params(
         and does not depend on ``model`` or ``color_bias``, so switching them leaves the other
         values unchanged. The row picks ``tukey_lambda`` from the table's discrete shapes.
     """
-    if model not in NOISE_MODELS:
-        raise ParameterError(f"unknown noise model '{model}' (choose {', '.join(NOISE_MODELS)})")
-    lo, hi = ratio_range
-    if not (0 < lo <= hi) or not math.isfinite(hi):
-        raise ParameterError(f"ratio range must satisfy 0 < low <= high, got {ratio_range}")
+    check_choice(model, "model", NOISE_MODELS)
+    lo, hi = check_pair(ratio_range, "ratio_range", low=0.0, strict=True)
     if isinstance(camera, CameraProfile):
         prof = camera
     else:
@@ -306,25 +309,22 @@ def sample_noise_params(
 
 
 def _check_params(params: NoiseParams) -> None:
-    if params.model not in NOISE_MODELS:
-        raise ParameterError(f"unknown noise model '{params.model}'")
-    if not 0 <= params.seed < 2**63:
-        raise ParameterError(f"noise seed must be in [0, 2^63), got {params.seed}")
+    """The fields of a record (perhaps read back from JSON), each named as the field."""
+    check_choice(params.model, "model", NOISE_MODELS)
+    check_int_range(params.seed, "seed", low=0, high=2**63 - 1)
     if params.model == "none":
         return
     for name in ("system_gain", "ratio", "saturation"):
-        v = getattr(params, name)
-        if not (math.isfinite(v) and v > 0):
-            raise ParameterError(f"noise {name} must be finite and > 0, got {v}")
+        check_positive(getattr(params, name), name)
     for name in ("sigma_read", "sigma_row"):
-        v = getattr(params, name)
-        if not (math.isfinite(v) and v >= 0):
-            raise ParameterError(f"noise {name} must be finite and >= 0, got {v}")
-    if len(params.color_bias) != 3 or not all(math.isfinite(v) for v in params.color_bias):
-        raise ParameterError(f"noise color_bias must be 3 finite values, got {params.color_bias}")
-    if params.model == "eld" and not (-0.5 < params.tukey_lambda < 1.0):
+        check_non_negative(getattr(params, name), name)
+    bias = np.asarray(params.color_bias, dtype=np.float64)
+    check_shape(bias, "(3)", "color_bias")  # R, G, B
+    check_all_finite(bias, "color_bias")
+    if params.model == "eld":
         # Outside (-1/2, 1) the read-noise variance is infinite or the support is tiny.
-        raise ParameterError(f"Tukey lambda must be in (-0.5, 1), got {params.tukey_lambda}")
+        check_range(params.tukey_lambda, "tukey_lambda", low=-0.5, high=1.0, low_open=True,
+                    high_open=True)  # fmt: skip
 
 
 def add_sensor_noise(raw: np.ndarray, params: NoiseParams) -> np.ndarray:
@@ -346,12 +346,11 @@ def add_sensor_noise(raw: np.ndarray, params: NoiseParams) -> np.ndarray:
     """
     _check_params(params)
     x = np.asarray(raw, dtype=np.float64)
-    if x.ndim not in (2, 3):
-        raise ParameterError(f"raw image must be (H, W) or (H, W, C), got shape {x.shape}")
+    check_shape(x, "(H, W) | (H, W, C)", "raw")
     if params.model == "none":
         return x.copy()
-    if not np.all(np.isfinite(x)) or (x.size and x.min() < 0):
-        raise ParameterError("raw signal must be finite and >= 0")
+    check_all_finite(x, "raw")
+    check_values(x, "raw", low=0.0)  # DN
     from scipy import stats
 
     gen = np.random.default_rng(params.seed)

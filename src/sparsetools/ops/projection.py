@@ -32,6 +32,16 @@ import numpy as np
 
 from ..calibration import Calibration
 from ..errors import ParameterError
+from ..validate import (
+    check_all_finite,
+    check_instance,
+    check_int_range,
+    check_non_negative,
+    check_nonempty,
+    check_ordered,
+    check_points,
+    check_shape,
+)
 
 __all__ = [
     "COMPILED_AFTER_POINTS",
@@ -178,15 +188,10 @@ def _zbuffer_depth(points, M, min_depth, max_depth, offset, depth) -> int:
         return _zbuffer_depth_numpy(points, M, min_depth, max_depth, offset, depth)
 
 
-def _check_points(points: np.ndarray) -> np.ndarray:
+def _check_points(points: np.ndarray, name: str = "points") -> np.ndarray:
     points = np.asarray(points)
-    if points.ndim != 2 or points.shape[1] < 3:
-        raise ParameterError(
-            f"points must be (N, C>=3) with x, y, z first, got shape {points.shape}"
-        )
+    check_points(points, name)
     if points.dtype not in (np.float32, np.float64):
-        if points.dtype.kind not in "fiu":
-            raise ParameterError(f"points must be numeric, got dtype {points.dtype}")
         points = points.astype(np.float64)
     return np.ascontiguousarray(points)
 
@@ -194,22 +199,17 @@ def _check_points(points: np.ndarray) -> np.ndarray:
 def _check_options(
     calib: Calibration, min_depth: float, max_depth: float | None, pixel_offset: int
 ) -> tuple[np.ndarray, int, int, float, float, int]:
-    if not isinstance(calib, Calibration):
-        raise ParameterError(f"calib must be a Calibration, got {type(calib).__name__}")
+    check_instance(calib, "calib", Calibration)
     width, height = calib.size
-    min_depth = float(min_depth)
-    if not np.isfinite(min_depth) or min_depth < 0:
-        raise ParameterError(f"min_depth must be a finite number >= 0, got {min_depth}")
+    min_depth = check_non_negative(min_depth, "min_depth")
     if max_depth is None:
         max_depth = np.inf
     else:
-        max_depth = float(max_depth)
-        if np.isnan(max_depth) or max_depth <= min_depth:
-            raise ParameterError(f"max_depth ({max_depth}) must be > min_depth ({min_depth})")
-    if int(pixel_offset) != pixel_offset:
-        raise ParameterError(f"pixel_offset must be an integer, got {pixel_offset}")
+        max_depth = float(max_depth)  # inf: no limit
+        check_ordered(min_depth, max_depth, "min_depth", "max_depth")
+    pixel_offset = check_int_range(pixel_offset, "pixel_offset")
     M = np.ascontiguousarray(calib.projection, dtype=np.float64)
-    return M, width, height, min_depth, max_depth, int(pixel_offset)
+    return M, width, height, min_depth, max_depth, pixel_offset
 
 
 def project_uvz(points: np.ndarray, projection: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -230,8 +230,7 @@ def project_uvz(points: np.ndarray, projection: np.ndarray) -> tuple[np.ndarray,
     """
     points = _check_points(points)
     M = np.asarray(projection, dtype=np.float64)
-    if M.shape != (3, 4):
-        raise ParameterError(f"projection must be 3x4, got shape {M.shape}")
+    check_shape(M, "(3, 4)", "projection")
     xyz = points[:, :3].astype(np.float64)
     uvw = xyz @ M[:, :3].T + M[:, 3]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -335,10 +334,11 @@ def sparse_from_depth(depth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
         Exact values of the map (no quantisation).
     """
     depth = np.asarray(depth)
-    if depth.ndim != 2:
-        raise ParameterError(f"depth must be (H, W), got shape {depth.shape}")
+    check_shape(depth, "(H, W)", "depth")
     if max(depth.shape) > 65536:  # coordinates 0..65535 fit uint16
-        raise ParameterError(f"depth map {depth.shape} too large for uint16 pixel coordinates")
+        raise ParameterError(
+            f"map {depth.shape} too large for uint16 pixel coordinates", param="depth"
+        )
     valid = np.isfinite(depth) & (depth > 0)
     v, u = np.nonzero(valid)
     return u.astype(np.uint16), v.astype(np.uint16), depth[v, u].astype(np.float32)
@@ -350,8 +350,7 @@ def sparse_from_depth(depth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
 def rigid_inverse(T: np.ndarray) -> np.ndarray:
     """Inverse of a (4, 4) rigid transform ``[R | t]``: ``[R^T | -R^T t]``."""
     T = np.asarray(T, dtype=np.float64)
-    if T.shape != (4, 4):
-        raise ParameterError(f"rigid transform must be 4x4, got shape {T.shape}")
+    check_shape(T, "(4, 4)", "T")
     R = T[:3, :3]
     out = np.eye(4)
     out[:3, :3] = R.T
@@ -382,6 +381,13 @@ def nuscenes_T_cam_from_sensor(
     -------
     T_cam_from_sensor : (4, 4) float64
     """
+    for name, T in (
+        ("T_ego_from_sensor", T_ego_from_sensor),
+        ("T_global_from_ego_at_sensor", T_global_from_ego_at_sensor),
+        ("T_global_from_ego_at_camera", T_global_from_ego_at_camera),
+        ("T_ego_from_camera", T_ego_from_camera),
+    ):
+        check_shape(np.asarray(T), "(4, 4)", name)
     return (
         rigid_inverse(T_ego_from_camera)
         @ rigid_inverse(T_global_from_ego_at_camera)
@@ -414,16 +420,15 @@ def accumulate_sweeps(
     sweep_index : (sum N_k,) int16
         Only with ``return_sweep_index``.
     """
-    if len(sweeps) == 0:
-        raise ParameterError("accumulate_sweeps needs at least one sweep")
+    check_nonempty(sweeps, "sweeps")
     chunks, owners = [], []
     n_cols = None
     dtype = None
     for k, (pts, T) in enumerate(sweeps):
-        pts = _check_points(pts)
+        pts = _check_points(pts, f"sweeps[{k}]")
         T = np.asarray(T, dtype=np.float64)
-        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-            raise ParameterError(f"sweep {k}: transform must be a finite 4x4, got shape {T.shape}")
+        check_shape(T, "(4, 4)", f"sweeps[{k}]")  # T_target_from_sweep
+        check_all_finite(T, f"sweeps[{k}]")
         if n_cols is None:
             n_cols, dtype = pts.shape[1], pts.dtype
         elif pts.shape[1] != n_cols:

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..validate import check_dtype, check_int_range, check_shape
+
 __all__ = ["rasterise_triangles"]
 
 
@@ -42,6 +44,13 @@ def rasterise_triangles(
     of a batch at once; a pixel on an edge shared by two triangles gets either value (they
     agree up to rounding).
     """
+    n_vertices = check_shape(xy, "(M, 2)", "xy")["M"]
+    check_dtype(xy, "xy", "iu")  # exact integer edge functions
+    check_shape(values, f"({n_vertices})", "values")
+    check_shape(simplices, "(T, 3)", "simplices")
+    check_dtype(simplices, "simplices", "iu")
+    check_shape(out, "(H, W)", "out")
+    chunk = check_int_range(chunk, "chunk", low=1)
     a, b, c = (xy[simplices[:, k]] for k in range(3))
     area = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (c[:, 0] - a[:, 0]) * (b[:, 1] - a[:, 1])
     tri = np.flatnonzero(area != 0)

@@ -11,13 +11,21 @@ light). Pure computation: arrays in, arrays out.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
 
 from ..errors import DependencyError, ParameterError
-from ..validate import check_int_range, check_non_negative, check_positive
+from ..validate import (
+    check_all_finite,
+    check_int_range,
+    check_non_negative,
+    check_points,
+    check_positive,
+    check_shape,
+)
 from .projection import rigid_inverse
 
 __all__ = ["IcpResult", "chain_poses", "icp_pose"]
@@ -61,8 +69,7 @@ def _import_open3d():
 
 def _check_cloud(name: str, points, min_range: float) -> np.ndarray:
     p = np.asarray(points)
-    if p.ndim != 2 or p.shape[1] < 3 or p.dtype.kind not in "fiu":
-        raise ParameterError(f"{name} must be (N, C>=3) numeric x, y, z, got {p.dtype} {p.shape}")
+    check_points(p, name)
     xyz = p[:, :3].astype(np.float64)
     keep = np.all(np.isfinite(xyz), axis=1)
     if min_range > 0:
@@ -77,8 +84,8 @@ def _check_cloud(name: str, points, min_range: float) -> np.ndarray:
 
 def _check_transform(name: str, T) -> np.ndarray:
     T = np.asarray(T, dtype=np.float64)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise ParameterError(f"{name} must be a finite 4x4 matrix, got shape {T.shape}")
+    check_shape(T, "(4, 4)", name)
+    check_all_finite(T, name)
     R = T[:3, :3]
     if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
         raise ParameterError(f"{name} is not a rigid transform (rotation not orthonormal)")
@@ -167,6 +174,21 @@ def icp_pose(
         else reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=tukey_k))
     )
     stages = _PYRAMID if coarse_to_fine else _PYRAMID[-1:]
+    try:
+        return _icp_stages(o3d, reg, src_full, tgt_full, T, estimation, stages, voxel=voxel,
+                           max_distance=max_distance, normal_radius=normal_radius,
+                           max_iterations=max_iterations)  # fmt: skip
+    except RuntimeError as exc:  # Open3D's own refusal of these clouds (extents, degeneracy)
+        text = re.sub(r"\x1b\[[0-9;]*m", "", str(exc))
+        reason = text.rsplit(": ", 1)[-1].strip().rstrip(".") or "Open3D failed"
+        raise ParameterError(
+            f"ICP cannot register these scans: {reason} (points spread over "
+            f"{float(np.ptp(source[:, :3])):.3g} m with --icp-voxel {voxel:g} m)"
+        ) from exc
+
+
+def _icp_stages(o3d, reg, src_full, tgt_full, T, estimation, stages, *, voxel, max_distance,
+                normal_radius, max_iterations) -> IcpResult:  # fmt: skip
     result = None
     for voxel_factor, distance_factor in stages:
         size = voxel * voxel_factor

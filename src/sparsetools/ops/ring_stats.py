@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import ParameterError
+from ..validate import check_dtype, check_int_range, check_non_negative, check_shape, check_values
 from .lidar_profile import _check_n_lasers, _check_points, _check_ring, _grouped_median, _polar
 
 __all__ = ["RingTable", "ring_elevations", "ring_table"]
@@ -96,11 +96,12 @@ def ring_table(points: np.ndarray, ring: np.ndarray, *, far_range: float = 20.0)
         Horizontal range beyond which a point counts as far.
     """
     points = _check_points(points, allow_empty=True)
+    check_non_negative(far_range, "far_range")
     ring = np.asarray(ring)
-    if ring.shape != (points.shape[0],) or (ring.size and ring.dtype.kind not in "iu"):
-        raise ParameterError(f"ring must be ({points.shape[0]},) integers, got {ring.shape}")
-    if ring.size and ring.min() < 0:
-        raise ParameterError("ring values must be >= 0")
+    check_shape(ring, f"({points.shape[0]})", "ring")
+    if ring.size:
+        check_dtype(ring, "ring", "iu")
+        check_values(ring, "ring", low=0)
     k = int(ring.max()) + 1 if ring.size else 0
     ring = ring.astype(np.intp)
     r, z = _polar(points)
@@ -141,6 +142,8 @@ def ring_elevations(
     points = _check_points(points, allow_empty=True)
     n_lasers = _check_n_lasers(n_lasers)
     ring = _check_ring(ring, points.shape[0], n_lasers)
+    check_non_negative(far_range, "far_range")
+    check_int_range(min_far_points, "min_far_points", low=0)
     # Elevations of the points that are needed only (far points, and every point of the
     # lasers with too few of them), each computed exactly as over the whole cloud.
     far, r = _far_points(points, far_range)

@@ -24,6 +24,7 @@ import logging
 import numpy as np
 
 from ..errors import FormatError, ParameterError
+from ..validate import check_choice, check_int_range, check_non_negative
 from .lidar_profile import (
     _MIN_FIT_RANGE,
     _OFFSET_BOUND,
@@ -81,6 +82,8 @@ def scan_order_rings(points: np.ndarray, *, n_lasers: int | None = None) -> np.n
         0 for the first ring stored; with KITTI's order 0 is the highest laser.
     """
     points = _check_points(points, allow_empty=True)
+    if n_lasers is not None:
+        _check_n_lasers(n_lasers)
     n = points.shape[0]
     if n == 0:
         return np.zeros(0, np.int32)
@@ -132,6 +135,7 @@ def column_rings(points: np.ndarray, *, n_lasers: int = 32, column: int = 4) -> 
     """
     points = _check_points(points, allow_empty=True)
     n_lasers = _check_n_lasers(n_lasers)
+    column = check_int_range(column, "column", low=0)
     if points.shape[1] <= column:
         raise FormatError(
             f"the cloud has {points.shape[1]} columns: no ring column {column} "
@@ -368,6 +372,8 @@ def elevation_rings(
     """
     points = _check_points(points)
     n_lasers = _check_n_lasers(n_lasers)
+    refine = check_int_range(refine, "refine", low=0)
+    check_non_negative(profile_tolerance_deg, "profile_tolerance_deg", allow_none=True)
     r, z = _polar(points)
     fit = r >= _MIN_FIT_RANGE
     if profile is not None and profile_tolerance_deg is not None:
@@ -479,8 +485,7 @@ def recover_rings_with_method(
 
     ``profile_tolerance_deg``: see :func:`elevation_rings`.
     """
-    if method not in RING_METHODS:
-        raise ParameterError(f"unknown ring method {method!r} (choose {', '.join(RING_METHODS)})")
+    check_choice(method, "method", RING_METHODS)
     points = _check_points(points)
     n_lasers = _check_n_lasers(n_lasers)
     if method == "column":

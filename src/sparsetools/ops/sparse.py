@@ -17,9 +17,12 @@ imported only under ``train/``).
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 
 from ..errors import ParameterError
+from ..validate import check_dtype, check_shape, check_values
 
 __all__ = ["dense_to_sparse", "infer_channels_last", "sparse_to_dense"]
 
@@ -36,8 +39,7 @@ def infer_channels_last(shape: tuple[int, ...], channels_last: bool | None) -> b
     """
     if channels_last is not None:
         return bool(channels_last)
-    if len(shape) != 4:
-        raise ParameterError(f"expected a 4-D batch (B, H, W, C) or (B, C, H, W), got {shape}")
+    check_shape(SimpleNamespace(shape=shape), "(B, H, W, C) | (B, C, H, W)", "shape")
     last_small = shape[3] <= _MAX_GUESSED_CHANNELS
     first_small = shape[1] <= _MAX_GUESSED_CHANNELS
     if last_small and not first_small:
@@ -52,12 +54,9 @@ def infer_channels_last(shape: tuple[int, ...], channels_last: bool | None) -> b
 
 def _as_bhwc(batch: np.ndarray, channels_last: bool | None) -> tuple[np.ndarray, bool]:
     """View of ``batch`` as (B, H, W, C) and whether the input was 3-D (B, H, W)."""
+    check_shape(batch, "(B, H, W) | (B, H, W, C) | (B, C, H, W)", "batch")
     if batch.ndim == 3:
         return batch[..., None], True
-    if batch.ndim != 4:
-        raise ParameterError(
-            f"expected a batch (B, H, W), (B, H, W, C) or (B, C, H, W), got shape {batch.shape}"
-        )
     if infer_channels_last(batch.shape, channels_last):
         return batch, False
     return np.moveaxis(batch, 1, 3), False
@@ -97,8 +96,7 @@ def dense_to_sparse(
         valid = np.any(bhwc != 0, axis=3)
     else:
         valid = np.asarray(mask, dtype=bool)
-        if valid.shape != bhwc.shape[:3]:
-            raise ParameterError(f"mask must have shape {bhwc.shape[:3]}, got {valid.shape}")
+        check_shape(valid, "({}, {}, {})".format(*bhwc.shape[:3]), "mask")
     b, y, x = np.nonzero(valid)
     coords = np.stack([x, y, b], axis=1).astype(np.int64, copy=False)
     feats = np.ascontiguousarray(bhwc[b, y, x, :])
@@ -140,25 +138,19 @@ def sparse_to_dense(
     coords = np.asarray(coords)
     feats = np.asarray(feats)
     shape = tuple(int(s) for s in shape)
+    check_shape(SimpleNamespace(shape=shape), "(B, H, W) | (B, H, W, C) | (B, C, H, W)", "shape")
     if len(shape) == 3:
         B, H, W = shape
         C = 1
-    elif len(shape) == 4:
-        B, H, W, C = shape if channels_last else (shape[0], shape[2], shape[3], shape[1])
     else:
-        raise ParameterError(f"shape must be (B, H, W) or 4-D, got {shape}")
-    if min(shape) < 0:
-        raise ParameterError(f"shape must not have negative sizes, got {shape}")
-    if coords.ndim != 2 or coords.shape[1] != 3:
-        raise ParameterError(f"coords must be (N, 3) [x, y, b], got shape {coords.shape}")
-    if coords.size and not np.issubdtype(coords.dtype, np.integer):
-        raise ParameterError(f"coords must be integers, got {coords.dtype}")
+        B, H, W, C = shape if channels_last else (shape[0], shape[2], shape[3], shape[1])
+    check_values(shape, "shape", low=0)  # sizes
+    n = check_shape(coords, "(N, 3)", "coords")["N"]  # [x, y, b]
+    if coords.size:
+        check_dtype(coords, "coords", "iu")
     if feats.ndim == 1:
         feats = feats[:, None]
-    if feats.ndim != 2 or feats.shape[0] != coords.shape[0] or feats.shape[1] != C:
-        raise ParameterError(
-            f"feats must be ({coords.shape[0]}, {C}) to match coords and shape, got {feats.shape}"
-        )
+    check_shape(feats, f"({n}, {C})", "feats")  # one row per coordinate, C channels
     out = np.zeros((B, H, W, C), dtype=feats.dtype)
     if coords.shape[0]:
         x, y, b = coords[:, 0], coords[:, 1], coords[:, 2]

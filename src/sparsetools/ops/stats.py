@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import ParameterError
+from ..validate import check_dtype, check_shape
 
 __all__ = ["depth_stats"]
 
@@ -20,10 +20,8 @@ def _valid(depth: np.ndarray) -> np.ndarray:
 
 def _as_map(depth, name: str) -> np.ndarray:
     d = np.asarray(depth)
-    if d.ndim != 2:
-        raise ParameterError(f"{name} must be an (H, W) depth map, got shape {d.shape}")
-    if not (np.issubdtype(d.dtype, np.floating) or np.issubdtype(d.dtype, np.integer)):
-        raise ParameterError(f"{name} must be numeric, got {d.dtype}")
+    check_shape(d, "(H, W)", name)
+    check_dtype(d, name, "fiu")
     return d
 
 

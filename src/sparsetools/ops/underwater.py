@@ -23,6 +23,16 @@ from collections.abc import Iterable, Iterator
 import numpy as np
 
 from ..errors import ParameterError
+from ..validate import (
+    check_all_finite,
+    check_dtype,
+    check_int_range,
+    check_nonempty,
+    check_odd,
+    check_positive,
+    check_probability,
+    check_shape,
+)
 
 __all__ = ["UnderwaterCompensator", "gray_world", "median_failure_probability", "window_median"]
 
@@ -48,11 +58,8 @@ def median_failure_probability(n: int, c: float) -> float:
     """
     from scipy import stats
 
-    if isinstance(n, bool) or int(n) != n or n < 1:
-        raise ParameterError(f"window size n must be an integer >= 1, got {n}")
-    if not (0.0 <= c <= 1.0):
-        raise ParameterError(f"contamination c must be in [0, 1], got {c}")
-    n = int(n)
+    n = check_int_range(n, "n", low=1)  # window size
+    check_probability(c, "c", open_low=False)  # contamination
     first = math.ceil(n / 2)
     # sf(k) = P(X > k) = P(X >= k + 1)
     return float(stats.binom.sf(first - 1, n, c))
@@ -88,12 +95,11 @@ def window_median(frames: np.ndarray, *, parallel: bool = True) -> np.ndarray:
     float32 array of shape ``frames.shape[1:]``
     """
     a = np.asarray(frames)
-    if a.ndim < 2 or a.shape[0] == 0:
-        raise ParameterError(f"need a non-empty stack of frames, got shape {a.shape}")
+    check_shape(a, "(N, P, ...)", "frames")
+    check_nonempty(a, "frames")
     if a.dtype not in (np.uint8, np.uint16):
         a = a.astype(np.float32)
-        if not np.all(np.isfinite(a)):
-            raise ParameterError("frames hold NaN or Inf values")
+        check_all_finite(a, "frames")
     flat = np.ascontiguousarray(a.reshape(a.shape[0], -1))
     n = flat.shape[0]
     hi = _rank_select(flat, n // 2, parallel=parallel).astype(np.float32)
@@ -113,6 +119,11 @@ def gray_world(image: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray
         Pixels used for the means (default all).
     """
     img = np.asarray(image, np.float32)
+    check_shape(img, "(H, W, C)", "image")
+    if valid is not None:
+        valid = np.asarray(valid)
+        check_shape(valid, "({}, {})".format(*img.shape[:2]), "valid")
+        check_dtype(valid, "valid", (np.bool_,))
     px = img[valid] if valid is not None else img.reshape(-1, img.shape[-1])
     if px.size == 0:
         return img.copy()
@@ -122,24 +133,17 @@ def gray_world(image: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray
 
 
 def _check_settings(window, eps) -> None:
-    if isinstance(window, bool) or int(window) != window or window % 2 == 0:
-        raise ParameterError(f"window must be an odd integer, got {window}")
-    if not 1 <= window <= _MAX_WINDOW:
-        raise ParameterError(f"window must be in 1..{_MAX_WINDOW}, got {window}")
-    if not (math.isfinite(eps) and eps > 0):
-        raise ParameterError(f"eps must be > 0, got {eps}")
+    check_odd(window, "window", low=1, high=_MAX_WINDOW)
+    check_positive(eps, "eps")
 
 
-def _as_frame(frame, shape: tuple | None, index: int) -> np.ndarray:
+def _as_frame(frame, shape: tuple | None, name: str) -> np.ndarray:
+    """``frame`` as (H, W, C), a number type; of ``shape`` when given."""
     f = np.asarray(frame)
     if f.ndim == 2:
         f = f[:, :, None]
-    if f.ndim != 3:
-        raise ParameterError(f"frame {index}: expected (H, W) or (H, W, C), got shape {f.shape}")
-    if shape is not None and f.shape != shape:
-        raise ParameterError(f"frame {index} is {f.shape}, the sequence is {shape}")
-    if f.dtype.kind not in "uif":
-        raise ParameterError(f"frame {index}: unsupported dtype {f.dtype}")
+    check_shape(f, "(H, W, C)" if shape is None else "({}, {}, {})".format(*shape), name)
+    check_dtype(f, name, "uif")
     return f
 
 
@@ -191,11 +195,13 @@ class UnderwaterCompensator:
         parallel: bool = True,
     ) -> None:
         _check_settings(window, eps)
-        water = [_as_frame(f, None, i) for i, f in enumerate(water_frames)]
+        water = [_as_frame(f, None, f"water_frames[{i}]") for i, f in enumerate(water_frames)]
         if not water:
-            raise ParameterError("no water-only frames: the backscatter B cannot be estimated")
+            raise ParameterError(
+                "no water-only frames: the backscatter B cannot be estimated", param="water_frames"
+            )
         for i, f in enumerate(water):
-            _as_frame(f, water[0].shape, i)
+            _as_frame(f, water[0].shape, f"water_frames[{i}]")
         if len({f.dtype for f in water}) == 1:
             stack = np.stack(water)
         else:
@@ -225,8 +231,8 @@ class UnderwaterCompensator:
         b = np.asarray(backscatter, dtype=np.float32)
         if b.ndim == 2:
             b = b[:, :, None]
-        if b.ndim != 3 or not np.all(np.isfinite(b)):
-            raise ParameterError(f"backscatter must be a finite (H, W, C) array, got {b.shape}")
+        check_shape(b, "(H, W, C)", "backscatter")
+        check_all_finite(b, "backscatter")
         obj._setup(b, window, a_ref, eps, white_balance)
         return obj
 
@@ -269,7 +275,9 @@ class UnderwaterCompensator:
         -------
         (C,) float32, all > 0
         """
-        signal = np.asarray(median, np.float32) - self.backscatter
+        median = np.asarray(median, np.float32)
+        check_shape(median, "({}, {}, {})".format(*self.shape), "median")
+        signal = median - self.backscatter
         # One contiguous channel at a time: numpy.median of a 1-D array is a quick select.
         a = np.array(
             [np.median(np.ascontiguousarray(signal[..., c]).ravel()) for c in range(self.shape[2])],
@@ -286,7 +294,7 @@ class UnderwaterCompensator:
         """Median ``M`` of the first ``window`` frames of ``frames`` ((H, W, C) float32)."""
         stack = []
         for i, f in enumerate(frames):
-            stack.append(_as_frame(f, self.shape, i))
+            stack.append(_as_frame(f, self.shape, f"frames[{i}]"))
             if len(stack) == self.window:
                 break
         if len(stack) < self.window:
@@ -349,12 +357,11 @@ class UnderwaterCompensator:
 
         def check(f, t):
             nonlocal dtype
-            f = _as_frame(f, self.shape, t)
+            f = _as_frame(f, self.shape, f"frames[{t}]")
             dtype = f.dtype if dtype is None else dtype
             if f.dtype != dtype:
                 raise ParameterError(f"frame {t} is {f.dtype}, the sequence started as {dtype}")
-            if f.dtype.kind == "f" and not np.all(np.isfinite(f)):
-                raise ParameterError(f"frame {t} holds NaN or Inf values")
+            check_all_finite(f, f"frames[{t}]")
             return f
 
         try:

@@ -12,6 +12,16 @@ from collections.abc import Sequence
 import numpy as np
 
 from ..errors import ParameterError
+from ..validate import (
+    check_dtype,
+    check_finite,
+    check_int_range,
+    check_nonempty,
+    check_ordered,
+    check_positive,
+    check_same_shape,
+    check_shape,
+)
 from .colormap import colorize_depth, overlay_depth, side_by_side
 
 __all__ = ["colorbar", "depth_panels", "label_panel"]
@@ -34,6 +44,8 @@ def label_panel(rgb: np.ndarray, text: str, *, scale: float | None = None) -> np
     """
     import cv2
 
+    check_shape(np.asarray(rgb), "(H, W, 3)", "rgb")
+    check_positive(scale, "scale", allow_none=True)
     out = np.ascontiguousarray(rgb, dtype=np.uint8).copy()
     if not text:
         return out
@@ -67,10 +79,13 @@ def colorbar(
     """
     import cv2
 
-    if width < 16:
-        raise ParameterError(f"colour bar width must be >= 16 px, got {width}")
-    if not max_depth > min_depth:
-        raise ParameterError(f"max_depth must exceed min_depth, got {min_depth}..{max_depth}")
+    width = check_int_range(width, "width", low=16)
+    check_finite(min_depth, "min_depth")
+    check_finite(max_depth, "max_depth")
+    check_ordered(min_depth, max_depth, "min_depth", "max_depth")
+    if height is not None:
+        check_int_range(height, "height", low=1)
+    check_int_range(ticks, "ticks", low=0)
     scale = _font_scale(width // 3)
     bar_h = height or max(10, round(18 * scale))
     text_h = round(30 * scale) + 6
@@ -136,34 +151,25 @@ def depth_panels(
     -------
     (H', W', 3) uint8
     """
-    if not depths:
-        raise ParameterError("no depth map to draw")
+    check_nonempty(depths, "depths")
     if labels is not None and len(labels) != len(depths):
         raise ParameterError(f"{len(labels)} label(s) for {len(depths)} depth map(s)")
-    if not max_depth > 0:
-        raise ParameterError(f"max_depth must be > 0, got {max_depth}")
-    if dilate < 0:
-        raise ParameterError(f"dilate must be >= 0, got {dilate}")
-    shape = np.asarray(depths[0]).shape
-    for d in depths:
-        if np.asarray(d).ndim != 2 or np.asarray(d).shape != shape:
-            raise ParameterError(
-                f"depth maps must all be (H, W) of the same size, got {np.asarray(d).shape} and {shape}"
-            )
+    check_positive(max_depth, "max_depth")
+    check_int_range(dilate, "dilate", low=0)
+    first = np.asarray(depths[0])
+    check_shape(first, "(H, W)", "depths[0]")
+    for i, d in enumerate(depths[1:], start=1):
+        check_same_shape(np.asarray(d), first, f"depths[{i}]", "depths[0]")
+    shape = first.shape
     if image is None:
         image = np.zeros((*shape, 3), np.uint8)
         dim = 1.0
     else:
         image = np.asarray(image)
         dim = 0.6
-        if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
-            raise ParameterError(
-                f"image must be (H, W, 3) uint8 RGB, got {image.dtype} {image.shape}"
-            )
-        if image.shape[:2] != shape:
-            raise ParameterError(
-                f"image is {image.shape[1]}x{image.shape[0]} but depth is {shape[1]}x{shape[0]}"
-            )
+        check_shape(image, "(H, W, 3)", "image")
+        check_dtype(image, "image", (np.uint8,))
+        check_same_shape(image, first, "image", "depths[0]", dims=2)
     panels = []
     for i, d in enumerate(depths):
         panel = overlay_depth(

@@ -369,6 +369,9 @@ def run_frames(
             options=spec.options,
         ) as folder:
             plan = folder.plan(tasks, complete, shared=spec.shared_outputs)
+            # under the lock and in checked folders: a run's temporaries are its own
+            for d in {p.parent for t in tasks for p in t.output_paths}:
+                remove_stale_temporaries(d, recursive=False)
             skipped = plan.up_to_date
             recorded = plan.stats
             if skipped:

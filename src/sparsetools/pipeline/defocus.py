@@ -30,7 +30,7 @@ import numpy as np
 
 from ..errors import FormatError, ParameterError
 from ..io.atomic import atomic_path
-from ..io.sidecar import read_sidecar
+from ..io.sidecar import read_record_sidecar
 from ..io.sources import Frame
 from ..validate import check_choice, check_int_range, check_pair, check_positive
 from .batch import RunSummary
@@ -118,7 +118,8 @@ class DefocusSettings:
         from ..ops.defocus import DEFOCUS_CAMERAS
 
         set_ = object.__setattr__  # frozen: normalise once
-        set_(self, "seed", check_int_range(self.seed, "seed"))
+        # the manifest's seed column is int64
+        set_(self, "seed", check_int_range(self.seed, "seed", low=-(2**63), high=2**63 - 1))
         check_choice(self.sensor, "lens", DEFOCUS_CAMERAS)
         check_positive(self.focal_length_mm, "focal_length_mm", allow_none=True)
         check_positive(self.pixel_pitch_um, "pixel_pitch_um", allow_none=True)
@@ -365,10 +366,20 @@ def _manifest_schema():
     ])  # fmt: skip
 
 
-def _manifest_row(side: dict) -> dict:
+#: The fields of a sidecar and their kinds (:func:`sparsetools.io.sidecar.check_fields`).
+SIDECAR_FIELDS = {
+    "output": "str", "radius": "str", "source": "str", "depth": "str", "calib": "str?",
+    "frame_id": "str", "seed": "int", "config": "dict", "record": "dict",
+}  # fmt: skip
+
+
+def _manifest_row(side_path: Path, expect: dict) -> dict:
+    """A manifest row from a sidecar, every field checked: its kind, the record's own fields
+    (as the typed record writes them), and that it is the record of this output."""
     from ..ops.defocus import DefocusRecord
 
-    rec = DefocusRecord.from_dict(side["record"])
+    side, rec = read_record_sidecar(side_path, fields=SIDECAR_FIELDS, expect=expect,
+                                    record_type=DefocusRecord, what="defocus record")  # fmt: skip
     n = rec.noise
     flat = {f.name: getattr(rec, f.name) for f in fields(rec) if f.name not in ("noise", "version")}
     return {
@@ -383,6 +394,19 @@ def _manifest_row(side: dict) -> dict:
     }  # fmt: skip
 
 
+def _check_row(row: dict, schema, side_path: Path) -> None:
+    """Refuse a row the manifest's column types cannot hold (an int beyond int32...)."""
+    import pyarrow as pa
+
+    try:
+        pa.Table.from_pylist([row], schema=schema)
+    except (pa.ArrowException, OverflowError, TypeError, ValueError) as exc:
+        why = " ".join(str(exc).split())[:200]
+        raise FormatError(
+            f"{side_path}: a value does not fit the manifest ({why}); rerun with --overwrite"
+        ) from exc
+
+
 def write_defocus_manifest(out_dir: str | os.PathLike, tasks: list[FrameTask]) -> tuple[Path, int]:
     """Rebuild ``OUT/manifest.parquet`` from the sidecars of the complete tasks (atomic write).
 
@@ -393,16 +417,17 @@ def write_defocus_manifest(out_dir: str | os.PathLike, tasks: list[FrameTask]) -
     import pyarrow.parquet as pq
 
     rows = []
+    schema = _manifest_schema()
+    out = Path(out_dir)
     for t in tasks:
         if all(Path(p).is_file() for p in t.outputs.values()):
             side_path = Path(t.outputs["record"])
-            try:
-                rows.append(_manifest_row(read_sidecar(side_path)))
-            except (KeyError, TypeError, ParameterError) as exc:
-                raise FormatError(
-                    f"{side_path}: not a defocus record sidecar ({exc}); rerun with --overwrite"
-                ) from exc
-    table = pa.Table.from_pylist(rows, schema=_manifest_schema())
+            expect = {"frame_id": t.frame_id, "output": _relative(t.outputs["image"], out),
+                      "radius": _relative(t.outputs["radius"], out)}  # fmt: skip
+            row = _manifest_row(side_path, expect)
+            _check_row(row, schema, side_path)
+            rows.append(row)
+    table = pa.Table.from_pylist(rows, schema=schema)
     path = Path(out_dir) / MANIFEST
     with atomic_path(path) as tmp:
         pq.write_table(table, tmp)

@@ -20,7 +20,7 @@ import numpy as np
 from ..errors import ParameterError
 from ..io.atomic import atomic_path
 from ..io.sources import Frame
-from ..validate import check_choice, check_positive
+from ..validate import check_choice, check_range
 from .batch import RunSummary
 from .core import BatchJob, FrameStats, FrameTask
 from .provenance import settings_dict
@@ -43,7 +43,9 @@ class EqualizeSettings:
     table arithmetic (``nearest`` or ``rnw``, :func:`sparsetools.ops.enhance.mcie_lut`).
 
     ``reference`` is a file, or the frame id / name / file name of one input ("": the first
-    input); the run records the file it resolves to.
+    input); the run records the file it resolves to. ``clip`` is a fraction of the pixel
+    count in (0, 1]: 1 keeps every bin whole (no clipping), and a larger value means nothing
+    more (with ``rnw`` arithmetic ``clip x pixels`` would overflow the table's integers).
     """
 
     clip: float = 0.004
@@ -53,7 +55,9 @@ class EqualizeSettings:
     def __post_init__(self) -> None:
         from ..ops.enhance import ROUNDINGS
 
-        check_positive(self.clip, "clip")
+        object.__setattr__(
+            self, "clip", check_range(self.clip, "clip", low=0, low_open=True, high=1)
+        )
         check_choice(self.rounding, "rounding", ROUNDINGS)
         object.__setattr__(self, "reference", str(self.reference or ""))
 

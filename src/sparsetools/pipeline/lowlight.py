@@ -19,7 +19,7 @@ from typing import ClassVar
 
 from ..errors import FormatError
 from ..io.atomic import atomic_path
-from ..io.sidecar import read_sidecar
+from ..io.sidecar import read_record_sidecar
 from ..io.sources import Frame, FrameKey
 from ..ops.lowlight import LowLightParams
 from ..validate import check_int_range
@@ -61,7 +61,9 @@ class LowLightSettings:
     params: LowLightParams = field(default_factory=LowLightParams)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "seed", check_int_range(self.seed, "seed"))
+        # the manifest's seed column is int64
+        seed = check_int_range(self.seed, "seed", low=-(2**63), high=2**63 - 1)
+        object.__setattr__(self, "seed", seed)
         object.__setattr__(
             self, "variants", check_int_range(self.variants, "variants", low=1, high=MAX_VARIANTS)
         )
@@ -203,7 +205,7 @@ class LowLightJob(BatchJob[LowLightInput]):
         return json.loads(json.dumps(doc))
 
     def __call__(self, task: FrameTask[LowLightInput]) -> dict:
-        from ..io.calib import load_calibration
+        from ..io.calib import frame_calibration
         from ..io.image import read_depth_png, read_image, write_image
         from ..ops.lowlight import lowlight
         from ..random import frame_rng
@@ -217,7 +219,11 @@ class LowLightJob(BatchJob[LowLightInput]):
                 f"{inp.depth}: depth map is {depth.shape[1]}x{depth.shape[0]} but "
                 f"{Path(inp.image).name} is {image.shape[1]}x{image.shape[0]}"
             )
-        K = load_calibration(inp.calib).K if inp.calib else None
+        # The flares' 3-D points need the intrinsics of THIS image: a calibration of other
+        # images (another size, a principal point far from the centre) is refused.
+        K = None
+        if inp.calib:
+            K = frame_calibration(calib_path=inp.calib, image=inp.image, what="image").K
         images, records = _images_and_records(task)
         flares = 0
         config = self.config()
@@ -257,6 +263,42 @@ def _manifest_schema():
     ])  # fmt: skip
 
 
+#: The fields of a sidecar and their kinds (:func:`sparsetools.io.sidecar.check_fields`).
+SIDECAR_FIELDS = {
+    "output": "str", "source": "str", "depth": "str?", "calib": "str?", "frame_id": "str",
+    "variant": "count", "seed": "int", "config": "dict", "record": "dict",
+}  # fmt: skip
+
+
+def _manifest_row(side_path: Path, frame_id: str, output: str, variant: int) -> dict:
+    """A manifest row from a sidecar, every field checked: its kind, the record's own fields
+    (as the typed record writes them), and that it is the record of this output."""
+    from ..ops.lowlight import LowLightRecord
+
+    expect = {"frame_id": frame_id, "output": output, "variant": variant}
+    side, rec = read_record_sidecar(side_path, fields=SIDECAR_FIELDS, expect=expect,
+                                    record_type=LowLightRecord, what="low-light record")  # fmt: skip
+    return {
+        "output": side["output"], "source": side["source"], "depth": side["depth"],
+        "calib": side["calib"], "frame_id": side["frame_id"], "variant": side["variant"],
+        "seed": side["seed"], "width": rec.width, "height": rec.height,
+        **rec.summary(), "record_json": rec.to_json(),
+    }  # fmt: skip
+
+
+def _check_row(row: dict, schema, side_path: Path) -> None:
+    """Refuse a row the manifest's column types cannot hold (an int beyond int32...)."""
+    import pyarrow as pa
+
+    try:
+        pa.Table.from_pylist([row], schema=schema)
+    except (pa.ArrowException, OverflowError, TypeError, ValueError) as exc:
+        why = " ".join(str(exc).split())[:200]
+        raise FormatError(
+            f"{side_path}: a value does not fit the manifest ({why}); rerun with --overwrite"
+        ) from exc
+
+
 def write_manifest(out_dir: str | os.PathLike, tasks: list[FrameTask]) -> tuple[Path, int]:
     """Rebuild ``OUT/manifest.parquet`` from the sidecars of the complete tasks (atomic write).
 
@@ -266,22 +308,17 @@ def write_manifest(out_dir: str | os.PathLike, tasks: list[FrameTask]) -> tuple[
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    from ..ops.lowlight import LowLightRecord
-
     rows = []
+    schema = _manifest_schema()
     for t in tasks:
         if not all(Path(p).is_file() for p in t.outputs.values()):
             continue
-        for side_path in _images_and_records(t)[1]:
-            side = read_sidecar(side_path)
-            rec = LowLightRecord.from_dict(side["record"])
-            rows.append({
-                "output": side["output"], "source": side["source"], "depth": side["depth"],
-                "calib": side["calib"], "frame_id": side["frame_id"], "variant": side["variant"],
-                "seed": side["seed"], "width": rec.width, "height": rec.height,
-                **rec.summary(), "record_json": rec.to_json(),
-            })  # fmt: skip
-    table = pa.Table.from_pylist(rows, schema=_manifest_schema())
+        images, records = _images_and_records(t)
+        for k, (img_path, side_path) in enumerate(zip(images, records, strict=True)):
+            row = _manifest_row(side_path, t.frame_id, Path(img_path).name, k)
+            _check_row(row, schema, side_path)
+            rows.append(row)
+    table = pa.Table.from_pylist(rows, schema=schema)
     path = Path(out_dir) / MANIFEST
     with atomic_path(path) as tmp:
         pq.write_table(table, tmp)

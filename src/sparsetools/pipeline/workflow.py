@@ -89,28 +89,49 @@ def _run_step(step: Step, run_command: CommandRunner) -> StepResult:
     return StepResult(step, code, stdout, stderr, time.perf_counter() - t0)
 
 
+#: Largest ``steps.json`` read (bytes): it holds each step's captured output.
+MAX_STEPS_BYTES = 64 << 20
+#: Fields of a ``steps.json`` row and their kinds (:func:`sparsetools.io.sidecar.check_fields`).
+STEP_FIELDS = {"name": "str", "run": "list", "exit_code": "int", "seconds": "number",
+               "stdout": "str", "stderr": "str"}  # fmt: skip
+
+
 def _previous_results(workflow: Workflow, path: Path) -> dict[str, StepResult]:
-    """Results of an earlier run (``steps.json``) by step name, for steps still in the config."""
+    """Results of an earlier run (``steps.json``) by step name, for steps still in the config.
+
+    The file is untrusted input: a regular file (not a link) of at most
+    :data:`MAX_STEPS_BYTES`, a list of rows whose every field has its kind; anything else is
+    one :class:`FormatError` naming the file (and the row and field)."""
+    from ..errors import FormatError
+    from ..io.sidecar import check_fields, read_json_document
+
+    hint = "; run without --only to rewrite it"
     try:
-        rows = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        rows = read_json_document(path, what="pipeline steps record", max_bytes=MAX_STEPS_BYTES,
+                                  follow_links=False, hint=hint)  # fmt: skip
+    except FileNotFoundError:
         return {}
     if not isinstance(rows, list):
-        return {}
+        raise FormatError(f"{path}: not a pipeline steps record (a JSON list){hint}")
     steps = {s.name: s for s in workflow.steps}
     out = {}
-    for r in rows:
-        if not isinstance(r, dict) or r.get("name") not in steps:
+    for i, r in enumerate(rows):
+        where = f"{path}: row {i}"
+        if not isinstance(r, dict):
+            raise FormatError(f"{where} is not a JSON object{hint}")
+        try:
+            check_fields(r, STEP_FIELDS, where)
+            if not all(isinstance(a, str) for a in r["run"]):
+                raise FormatError(f"{where}: 'run' must be a list of strings")
+        except FormatError as exc:
+            raise FormatError(f"{exc}{hint}") from exc
+        step = steps.get(r["name"])
+        if step is None:
             continue
-        step = steps[r["name"]]
-        if r.get("run") != step.run:
+        if r["run"] != step.run:
             continue  # the step's command changed since: its old output no longer describes it
         out[step.name] = StepResult(
-            step,
-            int(r.get("exit_code", 0)),
-            str(r.get("stdout", "")),
-            str(r.get("stderr", "")),
-            float(r.get("seconds", 0.0)),
+            step, r["exit_code"], r["stdout"], r["stderr"], float(r["seconds"])
         )
     return out
 
@@ -122,16 +143,28 @@ def run_workflow(
     run_command: CommandRunner,
     only: list[str] | None = None,
     echo=print,
+    overwrite: bool = False,
 ) -> list[StepResult]:
     """Run the steps in order and write ``OUT/report.md``; raise on the first failing step.
 
     Every command resumes (outputs that are up to date are kept), so a second run is cheap and
     rewrites the report. With ``only``, just those steps run and the report keeps the other
     steps' sections from the previous run (``OUT/steps.json``).
+
+    ``report.md`` and ``steps.json`` are replaced only when the pipeline wrote them (their
+    record says so) or with ``overwrite``: a user's own ``report.md`` in ``-o`` is refused
+    before any step runs.
     """
+    from ..io.containment import check_contained
     from .core import check_output_dir
+    from .provenance import OutputFile
 
     out = check_output_dir(out_dir, [])
+    written = [OutputFile(out / name, "pipeline", {}, [], overwrite=overwrite, noun="a report")
+               for name in ("report.md", "steps.json")]  # fmt: skip
+    for f in written:
+        check_contained(out, f.path)
+        f.up_to_date()  # refuses a file the pipeline did not write
     names = [s.name for s in workflow.steps]
     if only:
         unknown = [n for n in only if n not in names]
@@ -170,6 +203,8 @@ def run_workflow(
     ]
     with atomic_path(out / "steps.json") as tmp:
         tmp.write_text(json.dumps(steps, indent=1), encoding="utf-8")
+    for f in written:
+        f.record()
     if failed is not None:
         last = (failed.stderr.strip().splitlines() or ["(no message)"])[-1]
         raise ParameterError(f"step '{failed.step.name}' failed (exit {failed.exit_code}): {last}")

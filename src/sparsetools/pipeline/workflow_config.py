@@ -34,19 +34,17 @@ _RECURSIVE = {"pipeline", "demo"}
 
 
 def _read(path: Path) -> str:
+    """The config's text: a regular file (a link to ``/dev/zero`` would be read forever) of
+    at most :data:`MAX_CONFIG_BYTES`."""
+    from ..io.sidecar import read_regular_file
+
     try:
-        st = path.stat()
+        data = read_regular_file(path, what="pipeline config", max_bytes=MAX_CONFIG_BYTES)
     except FileNotFoundError as exc:
         raise FormatError(f"{path}: no such pipeline config") from exc
-    except OSError as exc:
-        raise FormatError(f"{path}: cannot read the pipeline config ({exc.strerror})") from exc
-    if not path.is_file():
-        raise FormatError(f"{path}: not a regular file")
-    if st.st_size > MAX_CONFIG_BYTES:
-        raise FormatError(f"{path}: {st.st_size} bytes, more than a config holds (1 MiB)")
     try:
-        return path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
         raise FormatError(f"{path}: cannot read the pipeline config ({exc})") from exc
 
 

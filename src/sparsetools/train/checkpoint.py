@@ -3,8 +3,8 @@
 A run folder holds::
 
     RUN_DIR/
-      config.json           the training configuration
-      metrics.csv           one row per epoch: train loss, validation loss and metrics
+      config.json           the run id and the training configuration
+      metrics.csv           one row per epoch: train loss, validation loss and metrics, run id
       last.pt, best.pt      checkpoints (best = best validation metric)
       curves.png            loss and validation metric per epoch
       predictions/epoch_NNN.png   a few validation samples
@@ -25,13 +25,25 @@ checked before any layer is allocated), weights whose names or shapes do not fit
 configuration (compared with the network built on torch's ``meta`` device, which allocates
 nothing), a training configuration of the wrong types or that contradicts the model's, and a
 training state, optimizer state or RNG state of the wrong structure.
+
+Every run has a **run id** (:func:`new_run_id`, 32 hex digits drawn when the run starts; no
+random stream of training is touched), written in ``config.json``, in every checkpoint and in
+every row of ``metrics.csv``. ``--resume`` continues a checkpoint only in its own run's folder
+(:func:`resume_run_id`): a ``last.pt`` of another run, or a folder whose ``config.json``,
+``metrics.csv`` or ``best.pt`` belongs to another run than its ``last.pt``, is refused with one
+line naming both. Checkpoints of sparsetools 0.2.0 have no run id and still resume.
 """
 
 from __future__ import annotations
 
+import csv
 import json
 import math
 import os
+import re
+import uuid
+import warnings
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -63,8 +75,10 @@ __all__ = [
     "load_checkpoint",
     "load_weights",
     "model_from_checkpoint",
+    "new_run_id",
     "pose_from_checkpoint",
     "restore_optimizer",
+    "resume_run_id",
     "save_checkpoint",
 ]
 
@@ -75,6 +89,17 @@ KINDS = ("supervised", "self-supervised")
 RUN_FILES = ("last.pt", "best.pt", "metrics.csv")
 #: The other files a run writes; in a folder without a run they are someone else's.
 OTHER_RUN_FILES = ("config.json", "curves.png", "predictions")
+#: What a run id looks like (:func:`new_run_id`).
+RUN_ID = re.compile(r"[0-9a-f]{32}")
+#: Larger run files are not read for their run id (``config.json`` is about 2 KB, a
+#: ``metrics.csv`` of 1,000 epochs about 400 KB).
+_MAX_RECORD_BYTES = 64 << 20
+
+
+def new_run_id() -> str:
+    """A fresh run id: 32 hex digits (``uuid4``, from the operating system's random source, so
+    no random stream of training is touched)."""
+    return uuid.uuid4().hex
 
 
 @dataclass
@@ -216,6 +241,8 @@ class Checkpoint:
     sbm_threshold : float or None
         The running SBM threshold (self-supervised runs with ``sbm``; None before its first
         batch).
+    run_id : str or None
+        The run the checkpoint belongs to (None: written by sparsetools 0.2.0, before run ids).
     """
 
     path: Path
@@ -229,6 +256,7 @@ class Checkpoint:
     pose_config: dict | None = None
     pose_model: dict | None = None
     sbm_threshold: float | None = None
+    run_id: str | None = None
 
     @property
     def input_mode(self) -> str:
@@ -303,8 +331,10 @@ def save_checkpoint(
     state: TrainingState,
     pose_model: torch.nn.Module | None = None,
     sbm_threshold: float | None = None,
+    run_id: str | None = None,
 ) -> None:
-    """Write a checkpoint atomically (the torch RNG state is taken now)."""
+    """Write a checkpoint atomically (the torch RNG state is taken now), with the ``run_id`` of
+    its run."""
     obj = {
         "format": CHECKPOINT_FORMAT,
         "version": CHECKPOINT_VERSION,
@@ -322,6 +352,8 @@ def save_checkpoint(
         obj["pose_model"] = _state_dict_cpu(pose_model)
     if sbm_threshold is not None:
         obj["sbm_threshold"] = float(sbm_threshold)
+    if run_id is not None:
+        obj["run_id"] = str(run_id)
     save_torch(obj, path)
 
 
@@ -400,6 +432,9 @@ def load_checkpoint(path: str | os.PathLike, *, input_mode: str | None = None) -
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise FormatError(f"{path}: incomplete checkpoint ({type(exc).__name__}: {exc})") from exc
     check_extras(raw, path)
+    run_id = raw.get("run_id")
+    if run_id is not None and not (isinstance(run_id, str) and RUN_ID.fullmatch(run_id)):
+        raise FormatError(f"{path}: run_id must be 32 hex digits, got {_shown(run_id)}")
     return Checkpoint(
         path=path,
         kind=kind,
@@ -412,6 +447,7 @@ def load_checkpoint(path: str | os.PathLike, *, input_mode: str | None = None) -
         pose_config=pc,
         pose_model=raw.get("pose_model"),
         sbm_threshold=raw.get("sbm_threshold"),
+        run_id=run_id,
     )
 
 
@@ -452,3 +488,117 @@ def pose_from_checkpoint(ckpt: Checkpoint):
     net = build_pose_net(ckpt.pose_config)
     load_weights(net, ckpt.pose_model, ckpt.path, "pose-network")
     return net
+
+
+def _shown(value) -> str:
+    """A run id as messages show it (``none`` for runs of sparsetools 0.2.0)."""
+    if value is None:
+        return "none (sparsetools 0.2.0)"
+    if isinstance(value, str) and RUN_ID.fullmatch(value):
+        return value
+    text = repr(value)  # anything else, quoted: one line, whatever it holds
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _small_file(path: Path) -> bool:
+    try:
+        return path.is_file() and path.stat().st_size <= _MAX_RECORD_BYTES
+    except OSError:
+        return False
+
+
+def _config_run_id(path: Path) -> tuple[bool, object]:
+    """(readable, run id) of a run's ``config.json``: not readable when missing, too large or
+    not a JSON object (the run rewrites it); the id is None when the file names none."""
+    if not _small_file(path):
+        return False, None
+    try:
+        d = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError):
+        return False, None
+    if not isinstance(d, dict):
+        return False, None
+    return True, d.get("run_id")
+
+
+def _metrics_run_ids(path: Path) -> set:
+    """The run ids in the ``run_id`` column of ``metrics.csv`` (empty: no file, no such column
+    -- sparsetools 0.2.0 -- or a file that is not CSV text; the run rewrites it)."""
+    if not _small_file(path):
+        return set()
+    try:
+        with open(path, encoding="utf-8", newline="") as f:
+            reader = csv.DictReader(f)
+            if "run_id" not in (reader.fieldnames or ()):
+                return set()
+            return {row.get("run_id") or None for row in reader}
+    except (OSError, UnicodeDecodeError, csv.Error):
+        return set()
+
+
+def _checkpoint_run_id(path: Path) -> tuple[bool, object]:
+    """(readable, run id) of another checkpoint of the folder (``best.pt``), its tensors
+    mapped, not read."""
+    try:
+        if not path.is_file() or not zipfile.is_zipfile(path):
+            return False, None
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            raw = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except Exception:  # torch raises many types; an unreadable best.pt tells nothing
+        return False, None
+    if not isinstance(raw, dict) or raw.get("format") != CHECKPOINT_FORMAT:
+        return False, None
+    return True, raw.get("run_id")
+
+
+def resume_run_id(out: Path, ckpt: Checkpoint) -> str:
+    """The run id ``--resume`` continues in ``out`` with ``ckpt`` (its ``last.pt``), after
+    checking that the folder's files belong to that run.
+
+    - ``metrics.csv``: every run id of its ``run_id`` column must be the checkpoint's (its
+      rows are the checkpoint's history);
+    - ``config.json``: when readable, it must name the checkpoint's run (a ``config.json``
+      that is not a JSON object is rewritten from the checkpoint, so it does not count);
+    - ``best.pt``: when it names a run, the one continued.
+
+    A checkpoint of sparsetools 0.2.0 (no run id) continues under the id its folder's
+    ``config.json`` names (a run that adopted it and stopped before its first epoch ended),
+    else under a new one.
+
+    Raises
+    ------
+    OutputError
+        One line naming the two runs and the files they come from.
+    """
+    out = Path(out)
+    last = ckpt.path
+    remedy = (
+        "--resume continues a run in its own folder only (put the run's files back together, "
+        "or start a new run in another folder)"
+    )
+    for rid in sorted(_metrics_run_ids(out / "metrics.csv"), key=str):
+        if rid != ckpt.run_id:
+            raise OutputError(
+                f"{out / 'metrics.csv'} belongs to run {_shown(rid)}, {last} to run "
+                f"{_shown(ckpt.run_id)}: {remedy}"
+            )
+    readable, config_id = _config_run_id(out / "config.json")
+    if ckpt.run_id is not None:
+        if readable and config_id != ckpt.run_id:
+            raise OutputError(
+                f"{last} belongs to run {_shown(ckpt.run_id)}, but {out / 'config.json'} to "
+                f"run {_shown(config_id)}: {remedy}"
+            )
+        run_id = ckpt.run_id
+    elif isinstance(config_id, str) and RUN_ID.fullmatch(config_id):
+        run_id = config_id
+    else:
+        run_id = new_run_id()
+    readable, best_id = _checkpoint_run_id(out / "best.pt")
+    if readable and best_id is not None and best_id != run_id:
+        raise OutputError(
+            f"{out / 'best.pt'} belongs to run {_shown(best_id)}, {last} to run "
+            f"{_shown(ckpt.run_id if ckpt.run_id is not None else run_id)}: {remedy}"
+        )
+    return run_id

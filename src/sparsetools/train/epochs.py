@@ -3,7 +3,7 @@
 A task (:class:`~sparsetools.train.supervised.SupervisedTask`,
 :class:`~sparsetools.train.selfsup.task.SelfSupervisedTask`, or one of your own) holds what is
 particular to one kind of training: its datasets, its networks, the loss of one batch and the
-validation. :func:`fit` holds the rest, once: the run folder and ``config.json``, the weights
+validation. :func:`fit` holds the rest, once: the run folder, its run id and ``config.json``, the weights
 from ``torch.manual_seed(seed)``, the optimizer, ``--resume`` (weights, optimizer, RNG and the
 position inside the epoch), the learning-rate schedule, the sample order and the loader, the
 progress bar, the divergence check, and after every epoch the metrics row, ``best.pt`` /
@@ -27,7 +27,14 @@ from typing import Any, Protocol, runtime_checkable
 import torch
 
 from ..errors import ParameterError
-from .checkpoint import BestRecord, Checkpoint, TrainingState, restore_optimizer, save_checkpoint
+from .checkpoint import (
+    BestRecord,
+    Checkpoint,
+    TrainingState,
+    new_run_id,
+    restore_optimizer,
+    save_checkpoint,
+)
 from .config import TrainConfig, epoch_lr
 from .data import collate
 from .model import STRIDE
@@ -162,6 +169,8 @@ class TrainSummary:
     seconds: float
     #: torch CPU threads the run used (CPU results are bit-identical for the same count)
     threads: int
+    #: the run's id (config.json, every checkpoint, every metrics.csv row)
+    run_id: str | None = None
 
     def to_dict(self) -> dict:
         """Flat summary for the command line (``best_<metric>`` holds the best value)."""
@@ -176,6 +185,7 @@ class TrainSummary:
             "last": self.last,
             "threads": self.threads,
             "seconds": self.seconds,
+            "run_id": self.run_id,
         }
 
 
@@ -221,10 +231,23 @@ def write_epoch_files(
     metric: str,
     pictures: list,
     max_depth: float,
+    run_id: str | None = None,
 ) -> None:
-    """``metrics.csv``, ``curves.png`` and ``predictions/epoch_NNN.png`` after an epoch."""
+    """``metrics.csv``, ``curves.png`` and ``predictions/epoch_NNN.png`` after an epoch.
+
+    Every ``metrics.csv`` row ends with the ``run_id`` column (the rows are the checkpoint's
+    history: ``--resume`` refuses a folder whose metrics.csv names another run).
+    """
     row = state.history[-1]
-    write_csv(out / "metrics.csv", state.history, list(row))
+    columns = list(row)
+    if run_id is not None:
+        write_csv(
+            out / "metrics.csv",
+            [{**r, "run_id": run_id} for r in state.history],
+            [*columns, "run_id"],
+        )
+    else:
+        write_csv(out / "metrics.csv", state.history, columns)
     write_png(out / "curves.png", draw_curves(state.history, loss_name=loss_name, metric=metric))
     if pictures:
         write_png(
@@ -326,7 +349,9 @@ def fit(
     config : TrainConfig
         Checked (:func:`sparsetools.train.loop.prepare_run`), with ``threads`` set.
     ckpt : Checkpoint, optional
-        The run's ``last.pt`` to continue from (its folder is ``config.out_dir``).
+        The run's ``last.pt`` to continue from (its folder is ``config.out_dir``), checked by
+        :func:`~sparsetools.train.checkpoint.resume_run_id`: the run continues under its
+        ``run_id`` (a new run, or a checkpoint without an id, gets a new one).
     progress : bool
         A progress bar per epoch and per validation on stderr.
     on_epoch : callable, optional
@@ -347,6 +372,8 @@ def fit(
     tiny = _tiny(config, task.train_set)
     batches_per_epoch = math.ceil(len(task.train_set) / config.batch_size)
     started = time.perf_counter()
+    # drawn from the operating system, not from torch's or numpy's streams: no result changes
+    run_id = (ckpt.run_id if ckpt is not None else None) or new_run_id()
     with torch_settings(config.threads, device), background_saves():
         torch.manual_seed(config.seed)
         networks = list(task.build_networks(device))
@@ -359,7 +386,7 @@ def fit(
             state = ckpt.state
         else:
             out.mkdir(parents=True, exist_ok=True)
-        write_json(out / "config.json", config.to_dict())
+        write_json(out / "config.json", {"run_id": run_id, **config.to_dict()})
 
         while state.epoch < config.epochs and (
             config.max_steps is None or state.step < config.max_steps
@@ -395,6 +422,7 @@ def fit(
                 model=networks[0],
                 optimizer=optimizer,
                 state=state,
+                run_id=run_id,
                 **task.checkpoint_extras(),
             )
             write_epoch_files(
@@ -404,6 +432,7 @@ def fit(
                 metric=task.best_metric,
                 pictures=val.pictures,
                 max_depth=config.max_depth,
+                run_id=run_id,
             )
             log.info("epoch %d: %s", row["epoch"], task.describe(row))
             if on_epoch is not None:
@@ -421,4 +450,5 @@ def fit(
         last=state.history[-1] if state.history else None,
         seconds=round(time.perf_counter() - started, 2),
         threads=config.threads,
+        run_id=run_id,
     )

@@ -10,9 +10,9 @@
   scaling. For a self-supervised checkpoint on a split whose manifest has true camera poses,
   the pose network is evaluated too (ATE over 5-frame snippets,
   :mod:`sparsetools.train.selfsup.pose_eval`).
-- :func:`evaluate_folders` (scores depth PNG / ``.npy`` files matched by stem),
-  :class:`EvalResult`, :func:`format_eval_text` and :func:`write_eval_results` live in
-  :mod:`sparsetools.train.results`, which needs no torch, and are re-exported here.
+- :func:`evaluate_folders` (scores depth PNG / ``.npy`` files matched by frame, prediction
+  holes counted), :class:`EvalResult`, :func:`format_eval_text` and :func:`write_eval_results`
+  live in :mod:`sparsetools.train.results`, which needs no torch, and are re-exported here.
 
 A model of input mode ``rgbdc`` is fed the split's confidence maps (the dataset refuses a split
 without them before evaluating anything).
@@ -286,4 +286,5 @@ def evaluate_checkpoint(
         dataset=str(dataset),
         split=split,
         pose=pose_accuracy,
+        run_id=ckpt.run_id,
     )

@@ -12,12 +12,17 @@ Reproducibility: the model is initialised from ``torch.manual_seed(seed)``; the 
 training samples of epoch ``e`` is a permutation drawn from ``(seed, e)`` and each sample's
 augmentation from ``(seed, e, index)`` (:mod:`sparsetools.train.data`), so neither depends on
 the number of DataLoader workers. ``torch.use_deterministic_algorithms`` is on while training
-and the torch thread count is pinned (``threads``, default: the free cores, recorded in
-``config.json``; :func:`sparsetools.train.runtime.default_threads`). On CPU two
+and the torch thread count is pinned (``threads``, default: the CPUs this process may use, a
+fixed function of the machine, recorded in ``config.json``;
+:func:`sparsetools.train.runtime.default_threads`). On CPU two
 runs with the same seed (and thread count) give identical metrics, and a run resumed from
 ``last.pt`` -- saved at the end of every epoch, or where ``max_steps`` stopped it, with the
 model, optimizer, RNG states and the position inside the epoch -- continues exactly as if it
 had never stopped.
+
+Every run has a run id (in ``config.json``, every checkpoint and every ``metrics.csv`` row);
+``resume`` continues ``last.pt`` only in its own run's folder
+(:func:`sparsetools.train.checkpoint.resume_run_id`).
 """
 
 from __future__ import annotations
@@ -28,7 +33,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from ..errors import SparsetoolsError
-from .checkpoint import check_run_dir, load_checkpoint
+from .checkpoint import check_run_dir, load_checkpoint, resume_run_id
 from .config import TrainConfig, resumed_config
 from .epochs import TrainSummary, fit
 from .runtime import default_threads
@@ -60,13 +65,16 @@ def _finished_with_these_settings(config: TrainConfig, out: Path) -> bool:
 
 
 def prepare_run(config: TrainConfig, *, resume: bool, explicit: set[str] | None):
-    """Check the settings and the run folder; on ``resume`` load ``last.pt``.
+    """Check the settings and the run folder; on ``resume`` load ``last.pt`` and check that
+    the folder's files belong to its run (:func:`~sparsetools.train.checkpoint.resume_run_id`).
 
     Returns
     -------
     config : TrainConfig
         The configuration to train with (the run's own when resuming).
     ckpt : Checkpoint or None
+        Its ``run_id`` is the run it continues (a checkpoint of sparsetools 0.2.0, which has
+        none, continues under the id its folder's ``config.json`` names, or a new one).
     """
     config.validate()
     out = Path(config.out_dir)
@@ -79,6 +87,7 @@ def prepare_run(config: TrainConfig, *, resume: bool, explicit: set[str] | None)
     ckpt = None
     if resume:
         ckpt = load_checkpoint(out / "last.pt")
+        ckpt = replace(ckpt, run_id=resume_run_id(out, ckpt))
         config = resumed_config(config, ckpt.config, explicit)
         config.validate()
     if config.threads is None:  # config.json records the count the results depend on

@@ -3,7 +3,8 @@
 - :func:`torch_settings` turns on deterministic algorithms and pins the torch thread count for
   the duration of a run (restored afterwards). On CPU that makes two runs with the same seed
   and thread count bit-identical. :func:`default_threads` is the count used when none is
-  given: the CPUs of this process that are idle when the run starts.
+  given: the CPUs this process may use (its affinity mask, at most torch's own default), a
+  fixed function of the machine, never of its load at the moment.
 - :func:`make_loader` builds a DataLoader over an explicit list of sample indices; with
   :func:`epoch_order` (a permutation drawn from ``(seed, epoch)``) the order of the samples,
   and hence the results, never depend on the number of worker processes. Its workers are
@@ -28,7 +29,6 @@ import shutil
 import signal
 import sys
 import threading
-import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -49,7 +49,6 @@ __all__ = [
     "copy_file",
     "default_threads",
     "epoch_order",
-    "free_cores",
     "make_loader",
     "progress_bar",
     "resolve_device",
@@ -92,74 +91,24 @@ def available_cores() -> int:
 _TORCH_DEFAULT_THREADS = torch.get_num_threads()
 
 
-def _cpu_times(cpus: set[int]) -> dict[int, tuple[int, int]] | None:
-    """(idle, total) jiffies of each CPU in ``cpus`` from /proc/stat; None where unreadable."""
-    try:
-        with open("/proc/stat", encoding="ascii") as f:
-            lines = f.read().splitlines()
-    except OSError:
-        return None
-    out = {}
-    for line in lines:
-        name, _, rest = line.partition(" ")
-        if name.startswith("cpu") and name[3:].isdigit() and int(name[3:]) in cpus:
-            values = [int(v) for v in rest.split()]
-            out[int(name[3:])] = (values[3] + values[4], sum(values[:8]))  # idle + iowait
-    return out or None
+def default_threads(*, cores: int | None = None, cap: int | None = None) -> int:
+    """torch CPU threads for a run that was given none: a fixed function of the machine.
 
+    The count is the CPUs this process may use (``cores``, :func:`available_cores`: its
+    affinity mask), at most ``cap`` (torch's own default: the physical cores, or
+    ``OMP_NUM_THREADS``), at least 1. It does not depend on the load of the moment: the same
+    command on the same machine (and affinity) always gets the same count, so its CPU results
+    are the same bits. On a busy machine pass a smaller count (``--threads``): torch's threads
+    wait for each other at every operation when another process holds a core (issue 18 saw
+    283 s instead of 11 s).
 
-def free_cores(interval: float = 0.2) -> float:
-    """How many of this process's CPUs are idle now: the sum of their idle fractions over
-    ``interval`` seconds (/proc/stat), else from the 1-minute load average.
-
-    The load average lags by a minute: right after another run it counts that run's threads,
-    so it is only the fallback.
-    """
-    try:
-        cpus = set(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not on Linux
-        cpus = set(range(os.cpu_count() or 1))
-    before = _cpu_times(cpus)
-    if before is not None:
-        time.sleep(interval)
-        after = _cpu_times(cpus)
-        if after is not None and after.keys() == before.keys():
-            free = 0.0
-            for cpu, (idle0, total0) in before.items():
-                idle1, total1 = after[cpu]
-                if total1 > total0:
-                    free += min(max((idle1 - idle0) / (total1 - total0), 0.0), 1.0)
-                else:  # no tick in the interval: count the CPU as free
-                    free += 1.0
-            return free
-    try:
-        load = os.getloadavg()[0]
-    except (AttributeError, OSError):  # pragma: no cover - not on Unix
-        return float(len(cpus))
-    return max(0.0, len(cpus) - load * len(cpus) / max(os.cpu_count() or 1, 1))
-
-
-def default_threads(
-    *,
-    free: float | None = None,
-    cores: int | None = None,
-    cap: int | None = None,
-) -> int:
-    """torch CPU threads for a run that was given none: the free cores, at least 1.
-
-    torch's default of one thread per core collapses when other work holds a core: its
-    threads wait for each other at every operation (issue 18 saw 283 s instead of 11 s).
-    The count is the idle CPUs of this process (``free``, :func:`free_cores`), rounded to
-    the nearest integer, at most the ``cores`` it may use and ``cap`` (torch's default:
-    physical cores or ``OMP_NUM_THREADS``).
-
-    The thread count is recorded in the run's ``config.json``: CPU results are bit-identical
-    between runs with the same count (docs/scale.md says how much they differ otherwise).
+    The thread count is recorded in the run's ``config.json`` (and kept by ``--resume``): CPU
+    results are bit-identical between runs with the same count (docs/scale.md says how much
+    they differ otherwise).
     """
     cores = available_cores() if cores is None else int(cores)
     cap = _TORCH_DEFAULT_THREADS if cap is None else int(cap)
-    free = free_cores() if free is None else float(free)
-    return max(1, min(math.floor(max(free, 0.0) + 0.5), cores, max(cap, 1)))
+    return max(1, min(cores, cap))
 
 
 def resolve_threads(threads: int | None) -> int:

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ...calibration import Calibration
-from ...errors import FormatError, ParameterError
+from ...errors import FormatError, UsageError
 from .frame import Frame, FrameKey, Sweep
 
 __all__ = ["nuscenes_frames"]
@@ -59,13 +59,19 @@ def nuscenes_frames(
         Unreadable tables, or no sample with both key frames.
     """
     from ...ops.projection import nuscenes_T_cam_from_sensor, rigid_inverse
+    from ...validate import check_choice, check_int_range
     from ..nuscenes import NuScenesTables
 
-    if sweeps < 1:
-        raise ParameterError(f"must be >= 1, got {sweeps}", param="sweeps")
-    if night not in ("any", "only", "exclude"):
-        raise ParameterError(f"must be any, only or exclude, got {night!r}", param="night")
+    check_int_range(sweeps, "sweeps", low=1)
+    check_choice(night, "night", ("any", "only", "exclude"))
+    if sensor == camera:
+        raise UsageError(f"{sensor} is the camera (--camera): give a radar or LiDAR channel",
+                         param="sensor")  # fmt: skip
     tables = NuScenesTables(root, version)
+    modality = {s.get("channel"): s.get("modality") for s in tables.sensors()}
+    if modality.get(sensor) == "camera":
+        raise UsageError(f"{sensor} is a camera, not a depth sensor: give a RADAR_* or LIDAR_TOP "
+                         "channel", param="sensor")  # fmt: skip
     frames: list[Frame] = []
     missing = 0
     for sample in tables.samples():

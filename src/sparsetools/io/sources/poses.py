@@ -43,10 +43,12 @@ from .frame import Frame, FrameKey
 __all__ = [
     "POSES_FRAMES",
     "AccumulationInputs",
+    "FrameNumbers",
     "PoseAttachment",
     "accumulation_frames",
     "accumulation_inputs",
     "attach_poses",
+    "frame_number",
     "is_synthetic_video",
     "moving_masks",
     "video_frames",
@@ -248,8 +250,27 @@ def accumulation_frames(
 # -- pose files ----------------------------------------------------------------------------------
 
 
-def _frame_number(key: FrameKey) -> int | None:
-    return int(key.frame) if key.frame.isdigit() else None
+def frame_number(key: FrameKey) -> int | None:
+    """The frame's name read as a line number of its sequence's pose or time file (``000005``
+    -> 5), or None when it is not a decimal number."""
+    return int(key.frame) if key.frame.isascii() and key.frame.isdigit() else None
+
+
+class FrameNumbers:
+    """Frame numbers taken in each numbered file (a pose file, a times file): two frames of
+    different names whose numbers are equal (``1`` and ``01``) would share one line, one of
+    them silently with the other's data: refused, naming both."""
+
+    def __init__(self):
+        self._taken: dict[tuple[Path, int], FrameKey] = {}
+
+    def take(self, path: Path, n: int, key: FrameKey) -> None:
+        other = self._taken.setdefault((path, n), key)
+        if other != key:
+            raise FormatError(
+                f"frames '{other}' and '{key}' are both frame number {n}: both would take line "
+                f"{n + 1} of {path}; rename one (frame names are read as numbers)"
+            )
 
 
 class _PoseFiles:
@@ -257,15 +278,17 @@ class _PoseFiles:
 
     def __init__(self):
         self._poses: dict[Path, np.ndarray] = {}
+        self._numbers = FrameNumbers()
 
     def line(self, path: Path, key: FrameKey) -> tuple[np.ndarray | None, str]:
         from ..poses import read_kitti_poses
 
         if path not in self._poses:
             self._poses[path] = read_kitti_poses(path)
-        n = _frame_number(key)
+        n = frame_number(key)
         if n is None:
             return None, f"its name '{key.frame}' is not a frame number (a line of {path.name})"
+        self._numbers.take(path, n, key)
         poses = self._poses[path]
         if n >= len(poses):
             return None, f"{path} has {len(poses)} line(s); frame {key.frame} needs line {n + 1}"
@@ -398,7 +421,8 @@ def attach_poses(
     Raises
     ------
     FormatError
-        A pose file that cannot be read (names the file and line).
+        A pose file that cannot be read (names the file and line), or two frames whose names
+        are one number (``1`` and ``01``: they would share a line).
     ParameterError
         ``path`` missing, or one file for frames of several sequences.
     """

@@ -51,15 +51,18 @@ def video_index(path: str | os.PathLike, role: str, *, option: str) -> FileIndex
     Raises
     ------
     FormatError
-        A role the layout does not hold, no files, or unreadable poses.
+        A role the layout does not hold, no files, unreadable poses, or two frames whose
+        names are one number (``1`` and ``01``: they would share a pose line).
     """
     from ..poses import read_kitti_poses, read_times
+    from .poses import FrameNumbers, frame_number
 
     root = Path(path)
     if role not in VIDEO_ROLES:
         raise FormatError(f"{option}: a synthetic video folder holds no {role} files")
     sub, suffixes = VIDEO_ROLES[role]
     files, poses, times, calib, images = {}, {}, {}, {}, {}
+    numbers = FrameNumbers()
     for seq in _sequences(root):
         folder = seq / sub
         if not folder.is_dir():
@@ -77,8 +80,10 @@ def video_index(path: str | os.PathLike, role: str, *, option: str) -> FileIndex
             if role == "cloud":
                 if (seq / "image_2" / f"{key.frame}.png").is_file():
                     images[key] = seq / "image_2" / f"{key.frame}.png"
-            if key.frame.isdigit() and int(key.frame) < len(stack):
-                i = int(key.frame)
+            i = frame_number(key)
+            if i is not None:
+                numbers.take(seq / "poses.txt", i, key)
+            if i is not None and i < len(stack):
                 poses[key] = tuple(float(v) for v in stack[i].reshape(-1))
                 if clock is not None and i < len(clock):
                     times[key] = float(clock[i])

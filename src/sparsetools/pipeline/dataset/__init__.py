@@ -1,21 +1,16 @@
 """``dataset build / info / verify``: the batch job behind the commands, one module per concern.
 
 - :mod:`.splits`: split fractions, split files, sequence names, assignment by sequence;
-- :mod:`.build`: the settings, finding and matching the inputs, the job (:class:`DatasetJob`);
+- :mod:`.settings`: what the samples depend on (:class:`BuildSettings`);
+- :mod:`.build`: finding and matching the inputs, the job (:class:`DatasetJob`);
 - :mod:`.staging`: one frame's work and its staging record;
 - :mod:`.merge`: merging the staged frames into the manifest;
 - :mod:`.inspect`: ``info`` and ``verify``.
 """
 
-from .build import (
-    SPARSE_FORMATS,
-    BuildInputs,
-    BuildSettings,
-    DatasetJob,
-    build_dataset,
-    find_build_inputs,
-)
+from .build import BuildInputs, DatasetJob, build_dataset, find_build_inputs
 from .inspect import DatasetInfo, VerifyReport, dataset_info, verify_dataset
+from .settings import SPARSE_FORMATS, BuildSettings
 from .splits import (
     DEFAULT_SPLIT,
     assign_splits,

@@ -28,14 +28,13 @@ from ...io.dataset import MANIFEST_NAME, SPARSE_DIR, read_manifest
 from ...io.points_table import read_points_table
 from ...io.provenance import RECORD_DIR
 from ...io.sources import FrameKey, index_input, is_shared_calibration, match_keys
-from ...validate import check_choice, check_int_range
+from ...validate import check_int_range
 from ..batch import Batch, RunSummary
 from ..core import BatchJob, FrameTask, run_job
 from ..provenance import settings_dict
 from .merge import merge_staged
+from .settings import SPARSE_FORMATS, BuildSettings
 from .splits import (
-    DEFAULT_SPLIT,
-    parse_split_fractions,
     sequence_resolver,
     split_file_assignments,
 )
@@ -61,102 +60,11 @@ log = logging.getLogger(__name__)
 
 RGB_SUFFIXES = (".png", ".jpg", ".jpeg")
 CALIB_SUFFIXES = (".txt", ".json")
-SPARSE_FORMATS = ("png", "parquet", "both")
 #: jbf-expand names its confidence maps ``<stem>_conf.png``; they match frame ``<stem>``.
 CONF_SUFFIX = "_conf"
 #: Where the one-command routes (``dataset nuscenes`` / ``kitti-raw``) keep what they prepare
 #: (camera images, projected maps): each a sparsetools output folder with its own record.
 SOURCES_DIR = ".sources"
-
-
-# -- settings --------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class BuildSettings:
-    """What a dataset's samples depend on: recorded, and compared on every run that adds to it.
-
-    Attributes
-    ----------
-    sparse_format : {"png", "parquet", "both"}
-    sparse_name, gt_name : str, optional
-        KITTI depth-completion map sets of the sparse input and the ground truth.
-    link : bool
-        Reflink the input files where the file system can, instead of copying them.
-    source : str
-        Sensor of the sparse depth (``lidar``, ``lidar-4beam``, ``radar``...).
-    params : dict, optional
-        Generation parameters stored (as JSON) in every new row.
-    sequence_from : str
-        ``parent`` or ``regex:PATTERN`` (see :func:`.splits.sequence_resolver`).
-    split : mapping of split -> fraction, optional
-        Fractions of the sequences per split (``--splits``). None: the split comes from
-        ``split_files``, or without them from the inputs' tree (``--splits tree``).
-    split_files : tuple, optional
-        Split lists, each a path or a ``(name, path)`` pair (``--split-file``).
-    seed : int
-        Seed of the split assignment.
-    """
-
-    sparse_format: str = "both"
-    sparse_name: str | None = None
-    gt_name: str | None = None
-    link: bool = False
-    source: str = "lidar"
-    params: dict | None = None
-    sequence_from: str = "parent"
-    split: Mapping[str, float] | None = field(
-        default_factory=lambda: dict(DEFAULT_SPLIT), metadata={"option": "--splits"}
-    )
-    split_files: tuple | None = field(default=None, metadata={"option": "--split-file"})
-    seed: int = 0
-
-    def __post_init__(self) -> None:
-        check_choice(self.sparse_format, "sparse_format", SPARSE_FORMATS)
-        if not str(self.source).strip():
-            raise ParameterError("must not be empty", param="source")
-        sequence_resolver(self.sequence_from, "sequence")  # refuses a bad spec
-        if self.split is not None and self.split_files:
-            raise ParameterError("give split fractions or split files, not both")
-        if self.split is not None:
-            object.__setattr__(self, "split", parse_split_fractions(self.split))
-        if self.split_files is not None:
-            object.__setattr__(self, "split_files", tuple(self.split_files) or None)
-        object.__setattr__(self, "link", bool(self.link))
-        object.__setattr__(self, "source", str(self.source))
-        object.__setattr__(self, "seed", check_int_range(self.seed, "seed"))
-
-    @classmethod
-    def with_splits(
-        cls,
-        splits: str | Mapping[str, float] | None = None,
-        split_files: Iterable[str | tuple[str, str]] | None = None,
-        **settings,
-    ) -> BuildSettings:
-        """Settings from a choice of splits as the command line gives it.
-
-        ``splits``: fractions (``0.8,0.1,0.1``, ``train=0.7,val=0.3`` or a mapping),
-        ``"tree"`` (the split the inputs' tree gives), or None: the default fractions
-        (0.8/0.1/0.1 train/val/test) unless ``split_files`` are given.
-        """
-        split_files = tuple(split_files or ())
-        if splits is not None and split_files:
-            raise ParameterError("give split fractions or split files, not both")
-        if split_files or splits == "tree":
-            return cls(split=None, split_files=split_files or None, **settings)
-        return cls(split=DEFAULT_SPLIT if splits is None else splits, **settings)
-
-    @property
-    def split_from_tree(self) -> bool:
-        """Whether each frame's split is the one its input tree gives (KITTI depth
-        completion ``train`` / ``val``, ``val_selection``)."""
-        return self.split is None and not self.split_files
-
-    def split_method(self) -> dict:
-        """How splits are assigned, as the manifest's metadata says (without split-file counts)."""
-        if self.split_files:
-            return {"method": "split-file"}
-        if self.split_from_tree:
-            return {"method": "tree"}
-        return {"method": "sequence", "fractions": dict(self.split), "seed": self.seed}
 
 
 # -- input indexing ----------------------------------------------------------------------------------

@@ -12,14 +12,20 @@ from __future__ import annotations
 
 import logging
 import os
+from dataclasses import replace
 from pathlib import Path
 
-from ...errors import FormatError, ParameterError
+from ...errors import FormatError, ParameterError, UsageError
 from ..batch import Batch, RunSummary
 from ..core import run_job
-from .build import SOURCES_DIR, build_dataset
+from .build import SOURCES_DIR, BuildSettings, DatasetJob, build_dataset, find_build_inputs
 
-__all__ = ["build_kitti_dc_dataset", "build_kitti_raw_dataset", "build_nuscenes_dataset"]
+__all__ = [
+    "build_kitti_dc_dataset",
+    "build_kitti_raw_dataset",
+    "build_nuscenes_dataset",
+    "sweeps_summary",
+]
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +61,16 @@ def build_nuscenes_dataset(
 
     The radar paper's setting: ``camera="CAM_FRONT", resize=0.5, crop=(100, 0, 350, 800)``
     (``--crop 800x350+0+100``: 1600x900 -> 800x450, the top 100 rows cut).
+
+    ``sweeps`` is what is asked for; a sample whose chain of earlier sweeps is shorter merges
+    fewer. Each manifest row records what its sample merged (``generation_params["sample"]``:
+    ``sweeps_merged``, with ground truth ``gt_sweeps_merged``); the summary's ``sweeps`` gives
+    the requested count and the merged minimum, maximum and mean.
+
+    Raises
+    ------
+    UsageError
+        ``sensor`` is also ``gt_sensor`` (the input would be the ground truth itself).
     """
     from ...io.sources import nuscenes_frames
     from ..camera_images import CameraImageJob, CameraImageSettings
@@ -63,9 +79,16 @@ def build_nuscenes_dataset(
     batch = batch or Batch()
     if jbf and not sensor.upper().startswith("RADAR"):
         raise ParameterError("--jbf expands radar: give a RADAR_* --sensor", param="jbf")
+    if gt_sensor is not None and sensor.upper() == gt_sensor.upper():
+        raise UsageError(
+            f"{sensor} is also the ground truth (--gt-sensor {gt_sensor}): the input would equal "
+            "the truth; give another --sensor, or --gt-sensor another channel or none",
+            param="sensor",
+        )
     out = Path(out_dir)
     common = {"version": version, "camera": camera, "scenes": scenes, "night": night}
     frames = nuscenes_frames(root, sensor=sensor, sweeps=sweeps, **common)
+    gt_merged = {}
     if gt_sensor is not None:
         gt_frames = nuscenes_frames(root, sensor=gt_sensor, sweeps=gt_sweeps, **common)
         have = {f.key for f in gt_frames}
@@ -74,6 +97,13 @@ def build_nuscenes_dataset(
             log.warning("%d sample(s) lack %s and are left out", len(lost), gt_sensor)
         frames = [f for f in frames if f.key in have]
         gt_frames = [f for f in gt_frames if f.key in {f.key for f in frames}]
+        gt_merged = {str(f.key): 1 + len(f.sweeps) for f in gt_frames}
+    # What was merged, per sample: a sample near the start of its chain has fewer sweeps.
+    merged = {str(f.key): 1 + len(f.sweeps) for f in frames}
+    sample_params = {
+        k: (("sweeps_merged", n),) + ((("gt_sweeps_merged", gt_merged[k]),) if gt_merged else ())
+        for k, n in merged.items()
+    }
     images = CameraImageJob(CameraImageSettings(resize=resize, crop=crop))
     run_job(images, frames, _stage(out, "images"), batch=batch, desc="images")
     project = ProjectJob(ProjectSettings(resize=resize, crop=crop, camera=camera))
@@ -92,30 +122,43 @@ def build_nuscenes_dataset(
         run_job(JbfJob(), radar, _stage(out, "jbf"), batch=batch)
         sparse = confidence = _stage(out, "jbf")
         source = f"{sensor.lower()}-jbf"
-    return build_dataset(
-        out,
-        rgb=_stage(out, "images"),
-        sparse=sparse,
-        gt=gt,
-        confidence=confidence,
-        calib=_stage(out, "images") / "calib",
-        split=split,
-        seed=seed,
-        sparse_format=sparse_format,
-        source=source,
+    settings = BuildSettings.with_splits(
+        split, None, sparse_format=sparse_format, source=source, seed=seed,
         params={
-            "route": "nuscenes",
-            "version": version,
-            "camera": camera,
-            "sensor": sensor,
-            "sweeps": sweeps,
-            "resize": resize,
-            "crop": list(crop) if crop else None,
-            "gt": gt_sensor,
-            "jbf": jbf,
+            "route": "nuscenes", "version": version, "camera": camera, "sensor": sensor,
+            "sweeps": sweeps, "resize": resize, "crop": list(crop) if crop else None,
+            "gt": gt_sensor, "jbf": jbf,
         },
-        batch=batch,
-    )
+    )  # fmt: skip
+    found = find_build_inputs(settings, rgb=_stage(out, "images"), sparse=sparse, gt=gt,
+                              confidence=confidence, calib=_stage(out, "images") / "calib")  # fmt: skip
+    found = replace(found, frames=[
+        replace(x, sample_params=sample_params.get(x.id, ())) for x in found.frames
+    ])  # fmt: skip
+    summary = run_job(DatasetJob.for_inputs(settings, found), found.frames, out, batch=batch,
+                      inputs=found.roots, desc="dataset")  # fmt: skip
+    return summary.with_totals({"sweeps": sweeps_summary(sweeps, merged.values())})
+
+
+def sweeps_summary(requested: int, merged) -> dict:
+    """``{"requested", "merged_min", "merged_max", "merged_mean"}`` over the samples; a
+    warning when some samples merged fewer sweeps than requested (their chain is shorter)."""
+    merged = list(merged)
+    if not merged:
+        return {"requested": requested}
+    short = sum(1 for n in merged if n < requested)
+    if short:
+        log.warning(
+            "%d of %d sample(s) merged fewer than %d sweeps (as few as %d): their chain of "
+            "earlier sweeps is shorter; each row records its own (sweeps_merged)",
+            short, len(merged), requested, min(merged),
+        )  # fmt: skip
+    return {
+        "requested": requested,
+        "merged_min": min(merged),
+        "merged_max": max(merged),
+        "merged_mean": round(sum(merged) / len(merged), 3),
+    }
 
 
 def build_kitti_raw_dataset(

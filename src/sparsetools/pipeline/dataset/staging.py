@@ -15,7 +15,6 @@ import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -33,9 +32,7 @@ from ...io.dataset import (
     points_sha256,
 )
 from ..core import FrameStats
-
-if TYPE_CHECKING:
-    from .build import BuildSettings
+from .settings import BuildSettings
 
 __all__ = [
     "STAGES",
@@ -54,10 +51,11 @@ STAGING = ".staging"
 
 # -- per-frame job -----------------------------------------------------------------------------------
 def _read_bytes(path: str, what: str) -> bytes:
-    try:
-        data = Path(path).read_bytes()
-    except OSError as exc:
-        raise FormatError(f"{path}: cannot read {what} ({exc.strerror or exc})") from exc
+    """A frame's input file (:func:`sparsetools.io.npy.read_map_bytes`: a regular file of
+    bounded size; a ``.npy`` header checked, against the pixel limit too, before the read)."""
+    from ...io.npy import read_map_bytes
+
+    data = read_map_bytes(path, what=what)
     if not data:
         raise FormatError(f"{path}: empty {what} file")
     return data
@@ -195,6 +193,29 @@ def _corrupt(path: Path, exc: BaseException) -> FormatError:
     return FormatError(f"{path}: corrupt staging record ({brief_error(exc)}); delete it and rerun")
 
 
+def _image_calibration(calib_path: str, image: str, w: int, h: int):
+    """The frame's calibration, checked against its ``w`` x ``h`` image as every command checks
+    it (:func:`sparsetools.io.calib.frame_calibration`): a calibration that holds its image
+    size must hold this one; one without a size must have its principal point near the
+    image's centre. Either way a calibration of other images is refused, never used."""
+    from ...errors import CalibrationError
+    from ...io.calib import check_principal_point, load_calibration
+
+    calib = load_calibration(calib_path)
+    if calib.width is not None and calib.height is not None:
+        if (calib.width, calib.height) != (w, h):
+            raise CalibrationError(
+                f"{calib_path}: calibration is for {calib.width}x{calib.height}, "
+                f"the image {image} is {w}x{h}"
+            )
+        # A calibration of this size may be of a crop (the routes write them so): its
+        # principal point need not be near the centre.
+        return calib
+    calib = calib.with_size(w, h)
+    check_principal_point(calib, given_by=f"image {image}")
+    return calib
+
+
 @dataclass(frozen=True)
 class DatasetFrameInput:
     """One frame of a build: where its files are and what the manifest row will say.
@@ -216,6 +237,10 @@ class DatasetFrameInput:
         None: assigned by sequence when the frames are merged.
     inputs_desc : tuple of (kind, relative path)
         Where each input came from, for ``generation_params``.
+    sample_params : tuple of (name, value)
+        What this frame's generation did that differs per frame (a nuScenes sample's radar
+        sweeps actually merged), stored in ``generation_params`` under ``"sample"``; the
+        run's own ``params`` are the same for every frame.
     """
 
     id: str
@@ -232,6 +257,7 @@ class DatasetFrameInput:
     pose: tuple[float, ...] | None = None
     split: str | None = None
     inputs_desc: tuple[tuple[str, str], ...] = ()
+    sample_params: tuple[tuple[str, object], ...] = ()
 
     @property
     def sources(self) -> tuple[Path, ...]:
@@ -360,19 +386,13 @@ def stage_frame(
 
     fx = fy = cx = cy = None
     if x.calib is not None:
-        from ...errors import CalibrationError
-        from ...io.calib import load_calibration
-
-        calib = load_calibration(x.calib)
-        if calib.width is not None and (calib.width, calib.height) != (w, h):
-            raise CalibrationError(
-                f"{x.calib}: calibration is for {calib.width}x{calib.height}, "
-                f"the image {x.rgb} is {w}x{h}"
-            )
+        calib = _image_calibration(x.calib, x.rgb, w, h)
         fx, fy, cx, cy = calib.fx, calib.fy, calib.cx, calib.cy
         params["calib"] = desc.get("calib")
     if settings.params:
         params["params"] = settings.params
+    if x.sample_params:
+        params["sample"] = dict(x.sample_params)
 
     row = ManifestRow(
         id=fid,
