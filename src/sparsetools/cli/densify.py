@@ -91,20 +91,19 @@ def densify(sparse, out_dir, method, variant, extrapolate, multiscale, inversion
       sparsetools densify out/depth -o out/dense_ms --multiscale --variant bilateral
       sparsetools densify out/radar -o out/radar_nearest --method nearest
     """
-    from ..errors import ParameterError
     from ..io.sources import depth_frames
     from ..ops.densify import DensifySettings
     from ..pipeline import run_job
     from ..pipeline.densify import DensifyJob
 
-    try:
-        settings = DensifySettings(method=method, variant=variant, extrapolate=extrapolate,
-                                   multiscale=multiscale, max_depth=inversion_offset,
-                                   outside=outside)  # fmt: skip
-    except ParameterError as exc:  # the library's max_depth is this command's option
-        if exc.param != "max_depth":
-            raise
-        raise ParameterError(exc.message, param="--inversion-offset") from None
+    settings = DensifySettings(
+        method=method,
+        variant=variant,
+        extrapolate=extrapolate,
+        multiscale=multiscale,
+        max_depth=inversion_offset,
+        outside=outside,
+    )
     summary = run_job(DensifyJob(settings, fmt), depth_frames(sparse), out_dir, batch=batch,
                       inputs=sparse)  # fmt: skip
     emit_summary(summary, as_json=as_json, title=f"dense depth maps in {out_dir}")
