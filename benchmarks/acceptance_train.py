@@ -218,7 +218,7 @@ def nearest_fill_reference(ds: Path) -> dict:
 def _metric_rows(run: Path) -> list[dict]:
     with open(run / "metrics.csv") as f:
         return [
-            {k: v for k, v in r.items() if k not in ("seconds", "samples_per_s")}
+            {k: v for k, v in r.items() if k not in ("seconds", "samples_per_s", "run_id")}
             for r in csv.DictReader(f)
         ]
 

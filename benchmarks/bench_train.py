@@ -14,7 +14,7 @@ Run: ``.venv/bin/python benchmarks/bench_train.py [--repeat 2] [--epochs 2]`` (4
        sparsetools train DS -o RUN --width 32 --batch-size 8 --epochs E --input rgbd [--threads N]
 
 3. For the default thread count (no ``--threads``: 0.2.0 takes every core, this version the
-   free cores, ``sparsetools.train.runtime.default_threads``), and for 1 and 2 threads, it
+   CPUs it may use, fixed per machine, ``sparsetools.train.runtime.default_threads``), and for 1 and 2 threads, it
    prints the medians of
    - end to end: training samples (samples x epochs) per second of the whole process (start,
      imports, data, training, validation, checkpoints, pictures), what a user waits for;

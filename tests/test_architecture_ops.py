@@ -40,7 +40,7 @@ UNCHECKED = {
 #: "a KITTI uint16 PNG stores depth * 256: read it with read_depth_png"). 234 before issue 22.
 #: A new check that is one of the vocabulary's rules uses validate.py instead; lower this
 #: number when a hand-written one goes.
-MAX_HAND_WRITTEN = 65
+MAX_HAND_WRITTEN = 66  # + ops.registration: scans Open3D cannot register (issue 23)
 
 #: Texts of rules that validate.py owns: a hand-written raise saying one of them re-implements
 #: the vocabulary (``_check_positive``, ``_range``...).

@@ -6,12 +6,11 @@ import hashlib
 import shutil
 from pathlib import Path
 
+import distributed  # noqa: F401 - a test dependency (make test installs the dask extra)
 import pytest
 from click.testing import CliRunner
 
 from sparsetools.cli.main import cli
-
-pytest.importorskip("distributed")
 
 SYNTH = Path(__file__).resolve().parent.parent / "sample_data" / "synthetic"
 

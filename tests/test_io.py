@@ -112,7 +112,6 @@ def test_npy_round_trip_and_bad_npy(tmp_path):
 
 @pytest.mark.parametrize("suffix", [".pcd", ".ply"])
 def test_open3d_round_trip_keeps_attributes(tmp_path, suffix):
-    pytest.importorskip("open3d")
     pts = _cloud(50, 4)
     write_points(tmp_path / f"a{suffix}", pts)
     back = read_points(tmp_path / f"a{suffix}")
@@ -121,7 +120,6 @@ def test_open3d_round_trip_keeps_attributes(tmp_path, suffix):
 
 
 def test_open3d_corrupt_and_empty(tmp_path):
-    pytest.importorskip("open3d")
     (tmp_path / "e.ply").write_bytes(b"")
     with pytest.raises(FormatError, match="empty"):
         read_points(tmp_path / "e.ply")

@@ -15,30 +15,28 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
+import torch.nn.functional as F
+from click.testing import CliRunner
 
-torch = pytest.importorskip("torch")
-
-import torch.nn.functional as F  # noqa: E402
-from click.testing import CliRunner  # noqa: E402
-
-from sparsetools.cli.main import cli  # noqa: E402
-from sparsetools.errors import ParameterError  # noqa: E402
-from sparsetools.ops.metrics import METRIC_NAMES, depth_metrics  # noqa: E402
-from sparsetools.train.checkpoint import load_checkpoint, model_from_checkpoint  # noqa: E402
-from sparsetools.train.config import SelfSupSettings, TrainConfig  # noqa: E402
-from sparsetools.train.data import collate  # noqa: E402
-from sparsetools.train.evaluate import evaluate_checkpoint  # noqa: E402
-from sparsetools.train.loop import train  # noqa: E402
-from sparsetools.train.model import DepthCompletionUNet, build_model, model_inputs  # noqa: E402
-from sparsetools.train.selfsup.data import TripletDataset  # noqa: E402
-from sparsetools.train.selfsup.pose_net import (  # noqa: E402
+from sparsetools.cli.main import cli
+from sparsetools.errors import ParameterError
+from sparsetools.ops.metrics import METRIC_NAMES, depth_metrics
+from sparsetools.train.checkpoint import load_checkpoint, model_from_checkpoint
+from sparsetools.train.config import SelfSupSettings, TrainConfig
+from sparsetools.train.data import collate
+from sparsetools.train.evaluate import evaluate_checkpoint
+from sparsetools.train.loop import train
+from sparsetools.train.model import DepthCompletionUNet, build_model, model_inputs
+from sparsetools.train.selfsup.data import TripletDataset
+from sparsetools.train.selfsup.pose_net import (
     PoseNet,
     build_pose_net,
     source_transforms,
 )
-from sparsetools.train.sfe import DenseLidarEncoder, SparseFeatureExtractor  # noqa: E402
-from test_selfsup_scene import video, write_video_dataset  # noqa: E402
-from test_train import make_dataset, read_rows, state_equal  # noqa: E402
+from sparsetools.train.sfe import DenseLidarEncoder, SparseFeatureExtractor
+from test_selfsup_scene import video, write_video_dataset
+from test_train import make_dataset, read_rows, state_equal
 
 H, W = 37, 53  # not multiples of 16: the padding path
 

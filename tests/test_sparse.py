@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
@@ -189,13 +190,11 @@ def test_round_trip_is_exact_hypothesis(x, channels_last):
 
 
 def test_torch_refused_by_numpy_version():
-    torch = pytest.importorskip("torch")
     with pytest.raises(ParameterError, match="train.sparse"):
         dense_to_sparse(torch.zeros(1, 2, 2))
 
 
 # -- torch -----------------------------------------------------------------------------------------
-torch = pytest.importorskip("torch")
 from sparsetools.train import sparse as tsparse  # noqa: E402
 
 

@@ -46,6 +46,7 @@ __all__ = [
     "METRIC_NAMES",
     "aggregate_metrics",
     "depth_metrics",
+    "evaluated_mask",
     "format_metrics_table",
     "garg_crop_mask",
 ]
@@ -85,6 +86,28 @@ def garg_crop_mask(height: int, width: int) -> np.ndarray:
     mask = np.zeros((height, width), dtype=bool)
     mask[top:bottom, left:right] = True
     return mask
+
+
+def evaluated_mask(
+    gt: np.ndarray, *, min_depth: float = 1e-3, max_depth: float = 80.0, garg_crop: bool = False
+) -> np.ndarray:
+    """The pixels :func:`depth_metrics` evaluates: finite ``min_depth < gt < max_depth`` (and
+    inside the Garg crop when asked).
+
+    Parameters
+    ----------
+    gt : (H, W) array, metres
+
+    Returns
+    -------
+    (H, W) bool
+    """
+    g = np.asarray(gt, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(g) & (g > min_depth) & (g < max_depth)
+    if garg_crop:
+        valid &= garg_crop_mask(*g.shape)
+    return valid
 
 
 def depth_metrics(
@@ -137,10 +160,7 @@ def depth_metrics(
     check_positive(max_depth, "max_depth")
     check_ordered(min_depth, max_depth, "min_depth", "max_depth")
     g = gt.astype(np.float64)
-    with np.errstate(invalid="ignore"):
-        valid = np.isfinite(g) & (g > min_depth) & (g < max_depth)
-    if garg_crop:
-        valid &= garg_crop_mask(*g.shape)
+    valid = evaluated_mask(g, min_depth=min_depth, max_depth=max_depth, garg_crop=garg_crop)
     g = g[valid]
     p = pred[valid].astype(np.float64)
     n = int(g.size)

@@ -34,8 +34,8 @@ from ..ops.metrics import (
     METRIC_NAMES,
     aggregate_metrics,
     depth_metrics,
+    evaluated_mask,
     format_metrics_table,
-    garg_crop_mask,
 )
 from .output_files import progress_bar, write_csv, write_json
 
@@ -112,17 +112,6 @@ class EvalResult:
         return out
 
 
-def _evaluated(gt: np.ndarray, *, min_depth: float, max_depth: float, garg_crop: bool):
-    """The pixels :func:`~sparsetools.ops.metrics.depth_metrics` evaluates (its definition:
-    finite ``min_depth < gt < max_depth``, inside the Garg crop when asked)."""
-    g = np.asarray(gt, dtype=np.float64)
-    with np.errstate(invalid="ignore"):
-        valid = np.isfinite(g) & (g > min_depth) & (g < max_depth)
-    if garg_crop:
-        valid &= garg_crop_mask(*g.shape)
-    return valid
-
-
 def score_prediction(
     pred: np.ndarray,
     gt: np.ndarray,
@@ -169,7 +158,7 @@ def score_prediction(
         return depth_metrics(pred, gt, **kw)
     with np.errstate(invalid="ignore"):
         has_value = np.isfinite(pred) & (pred > 0)
-    holes = _evaluated(gt, min_depth=min_depth, max_depth=max_depth, garg_crop=garg_crop)
+    holes = evaluated_mask(gt, min_depth=min_depth, max_depth=max_depth, garg_crop=garg_crop)
     holes &= ~has_value
     n_holes = int(np.count_nonzero(holes))
     if n_holes == 0:
