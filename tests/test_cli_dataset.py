@@ -325,3 +325,21 @@ def test_info_counts_what_is_on_disk(inputs, tmp_path):
     assert info["bytes"]["sources"] == 5000 and info["bytes"]["other"] > 0
     assert info["total_bytes"] == on_disk == sum(info["bytes"].values())
     assert "sources 4.9 KB" in run(["dataset", "info", out]).stdout
+
+
+@pytest.mark.real
+def test_a_route_refusal_names_the_option_typed(real_dir, tmp_path):
+    """The nuScenes route records its options in the build's ``params``: a refusal names
+    ``--sweeps``, as typed, not ``--params sweeps``."""
+    from _nuscenes_tree import build_tree
+
+    build_tree(real_dir, tmp_path / "nus")
+    out = tmp_path / "ds"
+    assert run(["-q", "dataset", "nuscenes", tmp_path / "nus", "-o", out]).exit_code == 0
+    for option, message in (
+        (["--sweeps", "3"], "made with --sweeps 5, not 3"),
+        (["--gt-sensor", "none"], "made with --gt-sensor LIDAR_TOP, not none"),
+        (["--jbf"], "made with --jbf off, not on"),
+    ):
+        r = run(["-q", "dataset", "nuscenes", tmp_path / "nus", "-o", out, *option])
+        assert r.exit_code == 1 and message in r.stderr, r.stderr

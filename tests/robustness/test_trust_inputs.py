@@ -41,7 +41,7 @@ from corpus_builder import (
     write,
 )
 
-from sparsetools.errors import FormatError
+from sparsetools.errors import FormatError, OutputError
 
 # -- a small nuScenes-style tree ----------------------------------------------------------------
 
@@ -742,6 +742,15 @@ def test_defocus_sidecar_fields_are_typed(tmp_path, edit, match):
         write_defocus_manifest(out, tasks)
 
 
+def _as_written_by_the_pipeline(out, text):
+    """``OUT/steps.json`` holding ``text``, as if the pipeline had written it (its record says
+    so: the pipeline replaces only its own files)."""
+    from sparsetools.pipeline.provenance import OutputFile
+
+    write(out / "steps.json", text)
+    OutputFile(out / "steps.json", "pipeline", {}, []).record()
+
+
 def _workflow(tmp_path):
     from sparsetools.pipeline.workflow import Step, Workflow
 
@@ -765,7 +774,7 @@ def test_steps_json_fields_are_typed(tmp_path, row, match):
     out = tmp_path / "out"
     good = {"name": "a", "run": ["stats", "x"], "exit_code": 0, "seconds": 0.1, "stdout": "",
             "stderr": ""}  # fmt: skip
-    write(out / "steps.json", json.dumps([dict(good, **row)]))
+    _as_written_by_the_pipeline(out, json.dumps([dict(good, **row)]))
     with pytest.raises(FormatError, match=match) as err:
         run_workflow(_workflow(tmp_path), out, run_command=lambda a: (0, "", ""), only=["b"],
                      echo=lambda s: None)  # fmt: skip
@@ -778,7 +787,7 @@ def test_steps_json_that_is_a_link_is_refused_not_read(tmp_path):
     out = tmp_path / "out"
     out.mkdir()
     _symlink_dev_zero(out / "steps.json")
-    with pytest.raises(FormatError, match="is a symbolic link, not a pipeline steps record"):
+    with pytest.raises(OutputError, match="steps.json is a symbolic link"):
         _within(20, run_workflow, _workflow(tmp_path), out, run_command=lambda a: (0, "", ""),
                 only=["b"], echo=lambda s: None)  # fmt: skip
 
@@ -789,7 +798,7 @@ def test_steps_json_of_the_right_types_keeps_the_other_steps(tmp_path):
     out = tmp_path / "out"
     good = {"name": "a", "run": ["stats", "x"], "exit_code": 0, "seconds": 1, "stdout": "A-OUT",
             "stderr": ""}  # fmt: skip
-    write(out / "steps.json", json.dumps([good]))
+    _as_written_by_the_pipeline(out, json.dumps([good]))
     run_workflow(_workflow(tmp_path), out, run_command=lambda a: (0, "B-OUT", ""), only=["b"],
                  echo=lambda s: None)  # fmt: skip
     report = (out / "report.md").read_text()

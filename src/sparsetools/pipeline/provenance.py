@@ -127,23 +127,35 @@ def _show(value) -> str:
 
 
 def settings_difference(
-    old: Mapping, new: Mapping, names: Mapping[str, str] | None = None
+    old: Mapping, new: Mapping, names: Mapping[str, str] | None = None, *, _path: str = ""
 ) -> tuple[str, str, str] | None:
-    """(option, old value, new value) of the first setting that differs, or None."""
+    """(option, old value, new value) of the first setting that differs, or None.
+
+    ``names`` maps a setting to the option that sets it; a setting inside a mapping setting
+    is named by its dotted path (``params.sweeps``: the option of a route that records its
+    options in ``params``), else by the mapping's option and its key (``--params sweeps``).
+    """
     names = names or {}
     for key in sorted(set(old) | set(new)):
         a, b = old.get(key), new.get(key)
         if a == b:
             continue
+        path = f"{_path}{key}"
         if isinstance(a, dict) and isinstance(b, dict):
-            inner = settings_difference(a, b)
+            inner = settings_difference(a, b, names, _path=f"{path}.")
             if inner is not None:
-                opt = names.get(key) or "--" + key.replace("_", "-")
-                sub = inner[0].lstrip("-")
-                return f"{opt} {sub}", inner[1], inner[2]
-        opt = names.get(key) or "--" + key.replace("_", "-")
-        return opt, _show(a), _show(b)
+                return inner
+        return _option_name(path, names), _show(a), _show(b)
     return None
+
+
+def _option_name(path: str, names: Mapping[str, str]) -> str:
+    if path in names:
+        return names[path]
+    parent, _, key = path.rpartition(".")
+    if parent:
+        return f"{_option_name(parent, names)} {key.replace('_', '-')}"
+    return "--" + key.replace("_", "-")
 
 
 #: Versions whose outputs this version writes byte for byte from the same settings (checked by

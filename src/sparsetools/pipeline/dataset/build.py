@@ -31,7 +31,7 @@ from ...io.sources import FrameKey, index_input, is_shared_calibration, match_ke
 from ...validate import check_int_range
 from ..batch import Batch, RunSummary
 from ..core import BatchJob, FrameTask, run_job
-from ..provenance import settings_dict
+from ..provenance import option_names, settings_dict
 from .merge import merge_staged
 from .settings import SPARSE_FORMATS, BuildSettings
 from .splits import (
@@ -318,6 +318,9 @@ class DatasetJob(BatchJob[DatasetFrameInput]):
         manifest's metadata.
     frames_per_part : int
         Frames per ``sparse/part-*.parquet`` file.
+    param_options : mapping of str -> str
+        How messages name the keys of ``settings.params``: a route's own options (``sweeps``
+        -> ``--sweeps``); a key not named is ``--params KEY``.
     """
 
     command = "dataset build"
@@ -329,17 +332,29 @@ class DatasetJob(BatchJob[DatasetFrameInput]):
     split_lists: Mapping[str, int] | None = None
     plan_seconds: float = 0.0
     frames_per_part: int = 1000
+    param_options: Mapping[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         check_int_range(self.frames_per_part, "frames_per_part", low=1)
 
     @classmethod
     def for_inputs(
-        cls, settings: BuildSettings, found: BuildInputs, *, frames_per_part: int = 1000
+        cls,
+        settings: BuildSettings,
+        found: BuildInputs,
+        *,
+        frames_per_part: int = 1000,
+        param_options: Mapping[str, str] | None = None,
     ) -> DatasetJob:
         """The job building the frames ``found``."""
         return cls(settings, found.unmatched, found.split_lists, found.seconds,
-                   frames_per_part=frames_per_part)  # fmt: skip
+                   frames_per_part=frames_per_part,
+                   param_options=dict(param_options or {}))  # fmt: skip
+
+    def option_names(self) -> dict:
+        names = dict(option_names(self.settings))
+        names.update({f"params.{k}": v for k, v in self.param_options.items()})
+        return names
 
     def record(self) -> dict:
         # Split files are recorded as sparsetools 0.2 wrote them (str of each item), so that
@@ -436,6 +451,7 @@ def build_dataset(
     camera: int = 2,
     batch: Batch | None = None,
     frames_per_part: int = 1000,
+    param_options: Mapping[str, str] | None = None,
 ) -> RunSummary:
     """Build (or extend) a dataset folder from per-frame input files.
 
@@ -492,6 +508,9 @@ def build_dataset(
         the frames of earlier runs (the dataset then holds this run's frames only).
     frames_per_part : int
         Frames per ``sparse/part-*.parquet`` file.
+    param_options : mapping of str -> str, optional
+        How messages name the keys of ``params`` (a route's options: ``{"sweeps":
+        "--sweeps"}``); default ``--params KEY``.
 
     Returns
     -------
@@ -512,7 +531,8 @@ def build_dataset(
         settings, rgb=rgb, sparse=sparse, gt=gt, confidence=confidence, calib=calib,
         camera=camera,
     )  # fmt: skip
-    job = DatasetJob.for_inputs(settings, found, frames_per_part=frames_per_part)
+    job = DatasetJob.for_inputs(settings, found, frames_per_part=frames_per_part,
+                                param_options=param_options)  # fmt: skip
     return run_job(job, found.frames, out_dir, batch=batch, inputs=found.roots, desc="dataset")
 
 

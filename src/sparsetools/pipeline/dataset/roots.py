@@ -30,6 +30,17 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 
+#: How messages name what each route records in the dataset's ``params``: the route's own
+#: options (a refusal says ``--sweeps 5, not 3``, not ``--params sweeps 5, not 3``).
+NUSCENES_OPTIONS = {
+    "route": "dataset", "version": "--nuscenes-version", "camera": "--camera",
+    "sensor": "--sensor", "sweeps": "--sweeps", "resize": "--resize", "crop": "--crop",
+    "gt": "--gt-sensor", "jbf": "--jbf",
+}  # fmt: skip
+KITTI_RAW_OPTIONS = {"route": "dataset", "beams": "--beams"}
+KITTI_DC_OPTIONS = {"route": "dataset", "sparse": "--sparse-name", "selection": "--selection"}
+
+
 def _stage(out: Path, name: str) -> Path:
     return Path(out) / SOURCES_DIR / name
 
@@ -135,8 +146,8 @@ def build_nuscenes_dataset(
     found = replace(found, frames=[
         replace(x, sample_params=sample_params.get(x.id, ())) for x in found.frames
     ])  # fmt: skip
-    summary = run_job(DatasetJob.for_inputs(settings, found), found.frames, out, batch=batch,
-                      inputs=found.roots, desc="dataset")  # fmt: skip
+    job = DatasetJob.for_inputs(settings, found, param_options=NUSCENES_OPTIONS)
+    summary = run_job(job, found.frames, out, batch=batch, inputs=found.roots, desc="dataset")
     return summary.with_totals({"sweeps": sweeps_summary(sweeps, merged.values())})
 
 
@@ -214,6 +225,7 @@ def build_kitti_raw_dataset(
         source="lidar" if beams is None else f"lidar-{beams}beam",
         camera=camera,
         params={"route": "kitti-raw", "beams": beams},
+        param_options=KITTI_RAW_OPTIONS,
         batch=batch,
     )
 
@@ -245,7 +257,8 @@ def build_kitti_dc_dataset(
         return build_dataset(
             out_dir, rgb=sel, sparse=sel, gt=sel, calib=sel, split="tree",
             sparse_format=sparse_format, source="lidar", camera=camera,
-            params={"route": "kitti-dc", "selection": True}, batch=batch,
+            params={"route": "kitti-dc", "selection": True}, param_options=KITTI_DC_OPTIONS,
+            batch=batch,
         )  # fmt: skip
     from ...io.sources.kitti import is_kitti_depth_completion
 
@@ -262,5 +275,6 @@ def build_kitti_dc_dataset(
         out_dir, rgb=raw, sparse=sparse, gt=gt, split="tree", sparse_name=sparse_name,
         gt_name=gt_name, sparse_format=sparse_format, camera=camera,
         source=f"lidar-{sparse_name}" if sparse_name else "lidar",
-        params={"route": "kitti-dc", "sparse": sparse_name or "velodyne_raw"}, batch=batch,
+        params={"route": "kitti-dc", "sparse": sparse_name or "velodyne_raw"},
+        param_options=KITTI_DC_OPTIONS, batch=batch,
     )  # fmt: skip
