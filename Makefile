@@ -39,6 +39,7 @@ bench: setup
 
 sample-data: setup
 	$(VENV)/bin/sparsetools synth-scene -o sample_data/synthetic --seed 0 --frames 3 --overwrite
+	rm -rf sample_data/synthetic/.sparsetools  # the run's record is not part of the sample data
 
 clean:
 	rm -rf out .pytest_cache build

@@ -3,13 +3,13 @@ self-supervised acceptance runs: acceptance_selfsup.py, acceptance_sfe.py).
 
 Every step is a `sparsetools` command, as a user would run it:
 
-    sparsetools synth-scene VIDEOS --video --sequences S --frames F --image-size WxH --seed 100
+    sparsetools synth-scene -o VIDEOS --video --sequences S --frames F --image-size WxH --seed 100
     sparsetools beams VIDEOS/<seq>/velodyne --n 1,2,4,16 -o BEAMS/<seq>
     sparsetools project BEAMS/<seq>/n<N> --calib VIDEOS/<seq>/calib --image VIDEOS/<seq>/image_2 \
         -o SPARSE<N>/<seq>
     sparsetools lowlight-synth VIDEOS/<seq>/image_2 --depth ... --calib ... -o NIGHT/<seq> ...
     sparsetools dataset build -o DS --rgb STAGE/rgb --sparse SPARSE<N> --gt STAGE/gt \
-        --calib STAGE/calib --split train=...,val=...,test=...
+        --calib STAGE/calib --splits train=...,val=...,test=...
 
 Existing outputs are reused (each command resumes; datasets with a manifest are kept). The datasets
 are built from flat staging folders (night images live apart from their videos), which carry
@@ -126,7 +126,7 @@ def prepare_datasets(
     beams = settings.beams
     if not (out / "videos" / "video.json").is_file():
         sparsetools(
-            "synth-scene", out / "videos", "--video", "--sequences", settings.sequences,
+            "synth-scene", "-o", out / "videos", "--video", "--sequences", settings.sequences,
             "--frames", settings.frames, "--image-size", f"{w}x{h}", "--seed", settings.seed,
             "--workers", settings.workers, "--overwrite",
         )  # fmt: skip
@@ -163,7 +163,7 @@ def prepare_datasets(
             sparsetools(
                 "dataset", "build", "-o", ds, "--rgb", stage / rgb, "--sparse", stage / f"sparse{n}",
                 "--gt", stage / "gt", "--calib", stage / "calib", "--source", f"lidar-{n}beam",
-                "--split", settings.split, "--seed", 0, "--sparse-format", "png",
+                "--splits", settings.split, "--seed", 0, "--sparse-format", "png",
             )  # fmt: skip
         attach_true_poses(ds, out)
         made[key] = ds

@@ -3,13 +3,13 @@
 Synthetic street videos (`synth-scene --video`) split by sequence; everything goes through the
 command line, as a user would run it:
 
-    sparsetools synth-scene VIDEOS --video --sequences S --frames F --image-size WxH --seed 100
+    sparsetools synth-scene -o VIDEOS --video --sequences S --frames F --image-size WxH --seed 100
     sparsetools beams VIDEOS/<seq>/velodyne --n 4,16 -o BEAMS/<seq>
     sparsetools project BEAMS/<seq>/n<N> --calib VIDEOS/<seq>/calib --image VIDEOS/<seq>/image_2 \
         -o SPARSE<N>/<seq>
     sparsetools lowlight-synth VIDEOS/<seq>/image_2 --depth ... --calib ... -o NIGHT/<seq> ...
     sparsetools dataset build -o DS --rgb STAGE/rgb --sparse SPARSE<N> --gt STAGE/gt \
-        --calib STAGE/calib --split train=...,val=...,test=...
+        --calib STAGE/calib --splits train=...,val=...,test=...
     sparsetools train DS -o RUNS/<name> --self-supervised [--sparse-loss silog] [--mcie --sbm]
     sparsetools eval --checkpoint RUNS/<name>/best.pt DS --split test --json
 

@@ -10,12 +10,12 @@ What it checks (issue 8, METHODS.md section 6):
 
 Everything goes through the command line, as a user would run it::
 
-    sparsetools synth-scene SCENES/seqS --seed S --frames F --image-size 192x64 --underwater-frames 0
+    sparsetools synth-scene -o SCENES/seqS --seed S --frames F --image-size 192x64 --underwater-frames 0
     sparsetools beams SCENES/seqS/velodyne --n 1,4,16 -o BEAMS/seqS
     sparsetools project BEAMS/seqS/nN --calib SCENES/seqS/calib --image SCENES/seqS/image_2 \
         -o STAGE/sparseN/seqS
     sparsetools dataset build -o DS_N --rgb STAGE/rgb --sparse STAGE/sparseN --gt STAGE/gt \
-        --split train=0.67,val=0.16,test=0.17
+        --splits train=0.67,val=0.16,test=0.17
     sparsetools train DS_N -o RUNS/<name> --input rgb|rgbd ...
     sparsetools eval --checkpoint RUNS/<name>/best.pt DS_N --split test --json
 
@@ -77,6 +77,7 @@ def prepare(out: Path, args) -> dict[str, Path]:
         if not (scene / "scene.json").is_file():
             sparsetools(
                 "synth-scene",
+                "-o",
                 scene,
                 "--seed",
                 100 + s,
@@ -127,7 +128,7 @@ def prepare(out: Path, args) -> dict[str, Path]:
                 stage / "gt",
                 "--source",
                 f"lidar-{n}beam",
-                "--split",
+                "--splits",
                 args.split,
                 "--seed",
                 0,

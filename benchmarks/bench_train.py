@@ -68,7 +68,7 @@ def build_dataset(root: Path) -> Path:
     for s in range(2):
         seq = f"seq0{s}"
         scene = root / "scenes" / seq
-        cli("synth-scene", scene, "--seed", s, "--frames", 20, "--image-size", "192x64",
+        cli("synth-scene", "-o", scene, "--seed", s, "--frames", 20, "--image-size", "192x64",
             "--underwater-frames", 0)  # fmt: skip
         cli("beams", scene / "velodyne", "--n", 16, "-o", root / "beams16" / seq)
         cli("project", root / "beams16" / seq, "--calib", scene / "calib", "--image",
@@ -77,7 +77,7 @@ def build_dataset(root: Path) -> Path:
         shutil.copytree(scene / "image_2", root / "rgb" / seq)
         shutil.copytree(scene / "depth_gt", root / "gt" / seq)
     cli("dataset", "build", "-o", ds, "--rgb", root / "rgb", "--sparse", root / "sparse16",
-        "--gt", root / "gt", "--split", "train=0.5,val=0.25,test=0.25")  # fmt: skip
+        "--gt", root / "gt", "--splits", "train=0.5,val=0.25,test=0.25")  # fmt: skip
     return ds
 
 

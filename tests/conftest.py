@@ -29,13 +29,19 @@ def nuscenes_demo(real_dir) -> Path:
     return real_dir / "nuscenes-mmdet3d-demo"
 
 
+#: The root logger's level when the session started: a module- or session-scoped fixture that
+#: runs a command with ``-q`` sets it to ERROR before any test's own set-up sees it.
+_ROOT_LEVEL = logging.getLogger().level
+
+
 @pytest.fixture(autouse=True)
 def _restore_root_logger():
     """CLI invocations configure the root logger (``--quiet`` raises it to ERROR,
-    ``basicConfig(force=True)`` replaces its handlers); undo that after every test so a later
-    test's ``caplog`` sees warnings whatever ran before it."""
+    ``basicConfig(force=True)`` replaces its handlers); undo that around every test so a
+    test's ``caplog`` sees warnings whatever ran before it (fixtures included)."""
     root = logging.getLogger()
-    level, handlers = root.level, list(root.handlers)
+    handlers = list(root.handlers)
+    root.setLevel(_ROOT_LEVEL)
     yield
-    root.setLevel(level)
+    root.setLevel(_ROOT_LEVEL)
     root.handlers[:] = handlers

@@ -360,7 +360,7 @@ def test_underwater_matches_library_and_workers(scene, tmp_path):
             "--json")  # fmt: skip
     assert r.exit_code == 0, r.output
     summary = json.loads(r.stdout)
-    assert summary["frames"] == 40 and summary["images"] == 40
+    assert summary["frames"] == 40 and summary["frames_processed"] == 40
     r = run("underwater", uw / "seafloor", "--water", uw / "water", "-o", b, "--median-window", "11",
             "--workers", "2")  # fmt: skip
     assert r.exit_code == 0, r.output
@@ -417,7 +417,7 @@ def test_underwater_resume_and_settings(scene, tmp_path):
     before = _hashes(out)
     (out / "000020.png").unlink()
     r = run(*args, "--json")
-    assert r.exit_code == 0 and json.loads(r.stdout)["images"] > 0
+    assert r.exit_code == 0 and json.loads(r.stdout)["frames_processed"] > 0
     assert _hashes(out) == before
     assert "made with --median-window 5, not 7" in _one_error_line(run(*args[:-1], "7"))
 

@@ -21,7 +21,7 @@ def test_video_folder_gives_sequences_poses_and_times(tmp_path):
     from sparsetools.io.poses import read_kitti_poses, read_times
 
     video = tmp_path / "video"
-    run("synth-scene", video, "--video", "--sequences", "2", "--frames", "3",
+    run("synth-scene", "-o", video, "--video", "--sequences", "2", "--frames", "3",
         "--image-size", "96x32", "--antialias", "1")  # fmt: skip
     run("beams", video, "--n", "16", "-o", tmp_path / "b16")
     run("project", tmp_path / "b16", "--calib", video, "--image", video, "-o", tmp_path / "d16")

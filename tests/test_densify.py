@@ -514,6 +514,6 @@ def test_settings_are_validated():
     assert err.value.param == "variant"  # the command line names it --variant
     with pytest.raises(ParameterError) as err:
         DensifySettings(max_depth=-5)
-    assert err.value.param == "max_depth"
+    assert err.value.param == "inversion_offset"  # what the field is: IP-Basic's offset
     with pytest.raises(ParameterError):
         densify(sparse_map(), {"method": "nearest"})

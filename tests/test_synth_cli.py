@@ -123,3 +123,22 @@ def test_video_options_need_video_mode_and_vice_versa(tmp_path):
     )
     assert r.exit_code == 2
     assert not (tmp_path / "a").exists()
+
+
+def test_the_old_positional_output_still_works_and_warns_once(tmp_path):
+    """``synth-scene OUT`` (0.2.0) is ``synth-scene -o OUT``: the same folder, one warning;
+    both forms at once are a usage error."""
+    runner = CliRunner()
+    new = runner.invoke(cli, ["synth-scene", "-o", str(tmp_path / "new"), *SMALL])
+    old = runner.invoke(cli, ["synth-scene", str(tmp_path / "old"), *SMALL])
+    assert new.exit_code == 0 and old.exit_code == 0, old.output
+    assert [ln for ln in old.stderr.splitlines() if "deprecated" in ln] == [
+        "WARNING: deprecated: synth-scene OUT_DIR is now synth-scene -o OUT_DIR (the old form "
+        "goes in 0.4)"
+    ]
+    files = sorted(p.relative_to(tmp_path / "new") for p in (tmp_path / "new").rglob("*.png"))
+    assert files and all(
+        (tmp_path / "new" / f).read_bytes() == (tmp_path / "old" / f).read_bytes() for f in files
+    )
+    both = runner.invoke(cli, ["synth-scene", str(tmp_path / "x"), "-o", str(tmp_path / "y")])
+    assert both.exit_code == 2 and "once" in both.stderr

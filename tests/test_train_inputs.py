@@ -316,7 +316,7 @@ def nuscenes_root(real_dir, tmp_path_factory):
 
 def _nuscenes_dataset(root: Path, out: Path, *extra) -> Path:
     r = cli_run("-q", "dataset", "nuscenes", root, "-o", out, "--sweeps", "1", "--resize",
-                "0.5", "--crop", "100,0,350,800", *extra)  # fmt: skip
+                "0.5", "--crop", "800x350+0+100", *extra)  # fmt: skip
     assert r.exit_code == 0, r.output
     return out
 
@@ -394,7 +394,7 @@ def test_kitti_depth_completion_tree_trains_one_step(kitti_trees, tmp_path):
 def test_kitti_raw_date_folder_trains_one_step(kitti_trees, tmp_path):
     date, _ = kitti_trees
     r = cli_run("-q", "dataset", "kitti-raw", date, "-o", tmp_path / "ds", "--beams", "4",
-                "--split", "train=0.5,val=0.5", "--json")  # fmt: skip
+                "--splits", "train=0.5,val=0.5", "--json")  # fmt: skip
     assert r.exit_code == 0, r.output
     assert json.loads(r.stdout)["splits"] == {"train": 3, "val": 3}  # one drive each
     run = tmp_path / "run"

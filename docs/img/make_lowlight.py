@@ -170,7 +170,7 @@ def underwater(tmp: Path) -> None:
     uw = SAMPLE / "synthetic" / "underwater"
     for name, extra in (("uw", ()), ("uw_wb", ("--white-balance",))):
         sparsetools("underwater", uw / "seafloor", "--water", uw / "water", "-o", tmp / name,
-                    "--window", "31", *extra)  # fmt: skip
+                    "--median-window", "31", *extra)  # fmt: skip
     truth = json.loads((uw / "truth.json").read_text())
     albedo = read_image(uw / "albedo.png")
     w = truth["size"][0]

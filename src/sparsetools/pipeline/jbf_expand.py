@@ -85,7 +85,7 @@ class JbfSettings:
     sigma_s: float = 25.0
     sigma_r: float = 10.0
     threshold: float = 0.05
-    window_m: tuple[float, float] = field(default=(2.35, 2.35), metadata={"option": "--window"})
+    window_m: tuple[float, float] = field(default=(2.35, 2.35), metadata={"option": "--window-m"})
     kernel: str = "jbf"
     range_metric: str = "gray"
     conflict: str = "nearest"
