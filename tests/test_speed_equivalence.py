@@ -20,7 +20,7 @@ from sparsetools.io.kitti import drop_non_finite, read_velodyne_bin
 from sparsetools.ops import jbf, projection
 from sparsetools.ops._projection_kernels import zbuffer_depth
 from sparsetools.ops.beams import horizon_rings, select_beams
-from sparsetools.ops.lidar_profile import _grouped_median
+from sparsetools.ops.lidar_profile import grouped_median
 from sparsetools.ops.rings import _angle_from, recover_rings, ring_elevations, scan_order_rings
 from test_beams import cone_scan
 
@@ -364,7 +364,7 @@ def test_grouped_median_equals_the_old_one_for_grouped_and_scattered_labels():
         values = rng.normal(size=n)
         if k % 3 == 0:
             values = np.round(values, 1)  # ties
-        new = _grouped_median(values, label, 64)
+        new = grouped_median(values, label, 64)
         old = old_grouped_median(values, label, 64)
         np.testing.assert_array_equal(new[0], old[0])
         np.testing.assert_array_equal(new[1], old[1])

@@ -413,8 +413,9 @@ def export(maps, out_dir, layout, name, split_from, default_split, batch, as_jso
           --split-from /data/kitti_dc/data_depth_velodyne
     """
     from ..io.sources import depth_frames
+    from ..io.sources.kitti import drive_splits
     from ..pipeline import run_job
-    from ..pipeline.export import ExportJob, ExportSettings, drive_splits
+    from ..pipeline.export import ExportJob, ExportSettings
 
     splits = drive_splits(split_from) if split_from is not None else {}
     job = ExportJob(ExportSettings(layout=layout, name=name, splits=splits), default_split)

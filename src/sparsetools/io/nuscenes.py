@@ -103,7 +103,7 @@ def _read_radar_bytes(path: Path) -> bytes:
         raise FormatError(f"{path}: no such radar file") from exc
 
 
-def _parse_pcd_header(data: bytes, path: Path) -> tuple[dict[str, list[str]], int]:
+def parse_pcd_header(data: bytes, path: Path) -> tuple[dict[str, list[str]], int]:
     header: dict[str, list[str]] = {}
     pos = 0
     while True:
@@ -145,7 +145,7 @@ def read_radar_pcd(
     """
     path = Path(path)
     data = _read_radar_bytes(path)
-    header, offset = _parse_pcd_header(data, path)
+    header, offset = parse_pcd_header(data, path)
     try:
         fields = header["FIELDS"]
         dtype = _pcd_dtype(fields, [int(s) for s in header["SIZE"]], header["TYPE"])

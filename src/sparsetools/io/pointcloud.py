@@ -88,9 +88,9 @@ _PLY_TYPE_SIZES = {
 
 def _check_pcd_header(data: bytes, path: Path) -> int:
     """Validate a PCD header against the file; return the number of points it declares."""
-    from .nuscenes import _parse_pcd_header
+    from .nuscenes import parse_pcd_header
 
-    header, offset = _parse_pcd_header(data, path)
+    header, offset = parse_pcd_header(data, path)
     try:
         fields = header["FIELDS"]
         sizes = [int(v) for v in header["SIZE"]]

@@ -24,9 +24,9 @@ from ..validate import (
 )
 from .lidar_profile import (
     SensorProfile,
-    _check_n_lasers,
-    _check_points,
-    _check_ring,
+    check_lidar_points,
+    check_n_lasers,
+    check_ring_labels,
 )
 from .rings import (
     RING_METHODS,
@@ -108,7 +108,7 @@ def horizon_rings(elevation_deg: np.ndarray, n: int) -> tuple[int, ...]:
 
 def uniform_rings(n_lasers: int, n: int) -> tuple[int, ...]:
     """Every (n_lasers / n)-th ring from ring 0; ``n`` must divide ``n_lasers``."""
-    n_lasers = _check_n_lasers(n_lasers)
+    n_lasers = check_n_lasers(n_lasers)
     n = _check_n(n, n_lasers)
     if n_lasers % n:
         ok = ", ".join(str(d) for d in range(1, n_lasers + 1) if n_lasers % d == 0)
@@ -266,7 +266,7 @@ def pl_sparsify_index(
     -------
     index : (M,) int64 into ``points``
     """
-    points = _check_points(points, allow_empty=True)
+    points = check_lidar_points(points, allow_empty=True)
     width = check_int_range(width, "width", low=1)
     height = check_int_range(height, "height", low=1)
     spec = tuple(int(s) for s in line_spec)
@@ -404,8 +404,8 @@ def select_beams(
     ParameterError
         Unknown mode, N that does not fit the mode or the cloud, rings out of range, NaN.
     """
-    points = _check_points(points, allow_empty=True)
-    n_lasers = _check_n_lasers(n_lasers)
+    points = check_lidar_points(points, allow_empty=True)
+    n_lasers = check_n_lasers(n_lasers)
     if select is not None:
         check_choice(select, "select", SELECT_MODES)
     check_non_negative(far_range, "far_range")
@@ -437,7 +437,7 @@ def select_beams(
         return BeamSelection(points[index], index, (), "pl++", points.shape[0], tuple(line_spec))
     if ring is None:
         raise ParameterError(f"selection {select or 'by rings'} needs the ring of every point")
-    ring = _check_ring(ring, points.shape[0], n_lasers)
+    ring = check_ring_labels(ring, points.shape[0], n_lasers)
     seen = np.zeros(n_lasers, bool)
     seen[ring] = True
     present = np.flatnonzero(seen)

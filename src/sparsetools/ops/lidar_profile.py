@@ -22,26 +22,40 @@ from ..validate import (
     check_non_negative,
     check_nonempty,
     check_points,
+    check_same_shape,
     check_shape,
     check_values,
 )
 
-__all__ = ["SensorProfile", "fit_sensor_profile"]
+__all__ = [
+    "MIN_FIT_RANGE",
+    "OFFSET_BOUND",
+    "RIDGE",
+    "SensorProfile",
+    "check_lidar_points",
+    "check_n_lasers",
+    "check_ring_labels",
+    "elevation_deg",
+    "fit_cones",
+    "fit_sensor_profile",
+    "grouped_median",
+    "polar_coordinates",
+]
 
 log = logging.getLogger(__name__)
 
 #: Points nearer than this (m) are left out of cone fits (1 / r blows up at the origin).
-_MIN_FIT_RANGE = 1.0
+MIN_FIT_RANGE = 1.0
 #: Prior weight on cone offsets, as a variance of 1 / r (1/m^2) per point.
-_RIDGE = 1e-7
+RIDGE = 1e-7
 #: Cone offsets estimated without a profile stay within this (m) of the common offset.
-_OFFSET_BOUND = 0.5
+OFFSET_BOUND = 0.5
 
 
 # -- input checks --------------------------------------------------------------------------------
 
 
-def _check_points(
+def check_lidar_points(
     points: np.ndarray, *, allow_empty: bool = False, name: str = "points"
 ) -> np.ndarray:
     """``points`` as an array: (N, C>=3), real numbers, x, y, z finite."""
@@ -69,11 +83,11 @@ def _finite_xyz(points: np.ndarray) -> bool:
     return bool(np.all(np.isfinite(points[:, :3])))
 
 
-def _check_n_lasers(n_lasers: int) -> int:
+def check_n_lasers(n_lasers: int) -> int:
     return check_int_range(n_lasers, "n_lasers", low=1, high=256)
 
 
-def _check_ring(ring: np.ndarray, n_points: int, n_lasers: int) -> np.ndarray:
+def check_ring_labels(ring: np.ndarray, n_points: int, n_lasers: int) -> np.ndarray:
     """``ring`` as an array: one integer in 0..n_lasers-1 per point."""
     ring = np.asarray(ring)
     check_shape(ring, f"({n_points})", "ring")
@@ -82,24 +96,28 @@ def _check_ring(ring: np.ndarray, n_points: int, n_lasers: int) -> np.ndarray:
     return ring
 
 
-def _polar(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def polar_coordinates(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Horizontal range ``hypot(x, y)`` and height ``z`` of (N, C>=3) points, float64 metres."""
+    check_shape(points, "(N, C)", "points")
     xyz = points[:, :3].astype(np.float64)
     return np.hypot(xyz[:, 0], xyz[:, 1]), xyz[:, 2]
 
 
-def _elevation_deg(points: np.ndarray) -> np.ndarray:
-    r, z = _polar(points)
+def elevation_deg(points: np.ndarray) -> np.ndarray:
+    """Elevation angle of each point seen from the sensor, degrees."""
+    r, z = polar_coordinates(points)
     return np.degrees(np.arctan2(z, r))
 
 
 # -- sensor profile ------------------------------------------------------------------------------
 
 
-def _grouped_median(values: np.ndarray, label: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+def grouped_median(values: np.ndarray, label: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     """Median of ``values`` per label 0..k-1 (NaN for empty labels), and the counts.
 
     ``values`` must be finite (``numpy.median`` of each group, without its NaN check).
     """
+    check_same_shape(values, label, "values", "label")
     count = np.bincount(label, minlength=k)
     if label.size > 1 and np.all(label[1:] >= label[:-1]):
         grouped = values  # rings in scan order come grouped already
@@ -190,7 +208,7 @@ class SensorProfile:
         }
 
 
-def _fit_cones(r, z, label, k, *, ridge=0.0, offset_prior=0.0, offset_bound=None):
+def fit_cones(r, z, label, k, *, ridge=0.0, offset_prior=0.0, offset_bound=None):
     """Cone ``z = s r + h`` per label, fitted in angle: ``z / r = s + h / r``.
 
     Least squares on the angular residual (the metric points are assigned by). ``ridge`` > 0
@@ -250,7 +268,7 @@ def fit_sensor_profile(
 
     Every laser needs at least 3 points over a spread of ranges (for the cone fit).
     """
-    n_lasers = _check_n_lasers(n_lasers)
+    n_lasers = check_n_lasers(n_lasers)
     check_non_negative(far_range, "far_range")
     check_non_negative(reference_range, "reference_range")
     check_int_range(min_far_points, "min_far_points", low=0)
@@ -260,19 +278,19 @@ def fit_sensor_profile(
             f"give one ring array per cloud: {len(clouds)} clouds, {len(rings)} ring arrays",
             param="rings",
         )
-    pts = np.vstack([_check_points(c)[:, :3].astype(np.float64) for c in clouds])
+    pts = np.vstack([check_lidar_points(c)[:, :3].astype(np.float64) for c in clouds])
     ring = np.concatenate(
-        [_check_ring(rg, c.shape[0], n_lasers) for c, rg in zip(clouds, rings, strict=True)]
+        [check_ring_labels(rg, c.shape[0], n_lasers) for c, rg in zip(clouds, rings, strict=True)]
     ).astype(np.intp)
     r, z = np.hypot(pts[:, 0], pts[:, 1]), pts[:, 2]
-    fit = r >= _MIN_FIT_RANGE
-    slope, offset, _ = _fit_cones(r[fit], z[fit], ring[fit], n_lasers)
+    fit = r >= MIN_FIT_RANGE
+    slope, offset, _ = fit_cones(r[fit], z[fit], ring[fit], n_lasers)
     if not np.all(np.isfinite(slope)):
         missing = np.flatnonzero(~np.isfinite(slope))
         raise ParameterError(f"rings {missing[:8].tolist()} have too few points to fit a cone")
     far = r > far_range
     el = np.degrees(np.arctan2(z, r))
-    far_med, n_far = _grouped_median(el[far], ring[far], n_lasers)
+    far_med, n_far = grouped_median(el[far], ring[far], n_lasers)
     cone_el = np.degrees(np.arctan2(reference_range * slope + offset, reference_range))
     use_far = n_far >= min_far_points
     elevation = np.where(use_far, far_med, cone_el)

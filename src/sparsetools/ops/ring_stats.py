@@ -10,7 +10,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..validate import check_dtype, check_int_range, check_non_negative, check_shape, check_values
-from .lidar_profile import _check_n_lasers, _check_points, _check_ring, _grouped_median, _polar
+from .lidar_profile import (
+    check_lidar_points,
+    check_n_lasers,
+    check_ring_labels,
+    grouped_median,
+    polar_coordinates,
+)
 
 __all__ = ["RingTable", "ring_elevations", "ring_table"]
 
@@ -95,7 +101,7 @@ def ring_table(points: np.ndarray, ring: np.ndarray, *, far_range: float = 20.0)
     far_range : float, metres
         Horizontal range beyond which a point counts as far.
     """
-    points = _check_points(points, allow_empty=True)
+    points = check_lidar_points(points, allow_empty=True)
     check_non_negative(far_range, "far_range")
     ring = np.asarray(ring)
     check_shape(ring, f"({points.shape[0]})", "ring")
@@ -104,11 +110,11 @@ def ring_table(points: np.ndarray, ring: np.ndarray, *, far_range: float = 20.0)
         check_values(ring, "ring", low=0)
     k = int(ring.max()) + 1 if ring.size else 0
     ring = ring.astype(np.intp)
-    r, z = _polar(points)
+    r, z = polar_coordinates(points)
     el = np.degrees(np.arctan2(z, r))
-    med, count = _grouped_median(el, ring, k)
+    med, count = grouped_median(el, ring, k)
     far = r > far_range
-    far_med, far_count = _grouped_median(el[far], ring[far], k)
+    far_med, far_count = grouped_median(el[far], ring[far], k)
     present = np.flatnonzero(count > 0)
     return RingTable(
         ring=present,
@@ -139,21 +145,21 @@ def ring_elevations(
     -------
     (n_lasers,) float64, degrees
     """
-    points = _check_points(points, allow_empty=True)
-    n_lasers = _check_n_lasers(n_lasers)
-    ring = _check_ring(ring, points.shape[0], n_lasers)
+    points = check_lidar_points(points, allow_empty=True)
+    n_lasers = check_n_lasers(n_lasers)
+    ring = check_ring_labels(ring, points.shape[0], n_lasers)
     check_non_negative(far_range, "far_range")
     check_int_range(min_far_points, "min_far_points", low=0)
     # Elevations of the points that are needed only (far points, and every point of the
     # lasers with too few of them), each computed exactly as over the whole cloud.
     far, r = _far_points(points, far_range)
     el = np.degrees(np.arctan2(points[far, 2].astype(np.float64), r))
-    far_med, far_count = _grouped_median(el, ring[far].astype(np.intp), n_lasers)
+    far_med, far_count = grouped_median(el, ring[far].astype(np.intp), n_lasers)
     few = far_count < min_far_points
     if few.any():
         near = np.flatnonzero(few[ring])
-        r, z = _polar(points[near])
-        all_med, _ = _grouped_median(
+        r, z = polar_coordinates(points[near])
+        all_med, _ = grouped_median(
             np.degrees(np.arctan2(z, r)), ring[near].astype(np.intp), n_lasers
         )
         far_med = np.where(few, all_med, far_med)

@@ -26,16 +26,16 @@ import numpy as np
 from ..errors import FormatError, ParameterError
 from ..validate import check_choice, check_int_range, check_non_negative
 from .lidar_profile import (
-    _MIN_FIT_RANGE,
-    _OFFSET_BOUND,
-    _RIDGE,
+    MIN_FIT_RANGE,
+    OFFSET_BOUND,
+    RIDGE,
     SensorProfile,
-    _check_n_lasers,
-    _check_points,
-    _check_ring,
-    _elevation_deg,
-    _fit_cones,
-    _polar,
+    check_lidar_points,
+    check_n_lasers,
+    check_ring_labels,
+    elevation_deg,
+    fit_cones,
+    polar_coordinates,
 )
 from .ring_stats import RingTable, ring_elevations, ring_table
 
@@ -81,9 +81,9 @@ def scan_order_rings(points: np.ndarray, *, n_lasers: int | None = None) -> np.n
     ring : (N,) int32
         0 for the first ring stored; with KITTI's order 0 is the highest laser.
     """
-    points = _check_points(points, allow_empty=True)
+    points = check_lidar_points(points, allow_empty=True)
     if n_lasers is not None:
-        _check_n_lasers(n_lasers)
+        check_n_lasers(n_lasers)
     n = points.shape[0]
     if n == 0:
         return np.zeros(0, np.int32)
@@ -133,8 +133,8 @@ def column_rings(points: np.ndarray, *, n_lasers: int = 32, column: int = 4) -> 
     FormatError
         No such column, non-integer values or values outside 0..n_lasers-1.
     """
-    points = _check_points(points, allow_empty=True)
-    n_lasers = _check_n_lasers(n_lasers)
+    points = check_lidar_points(points, allow_empty=True)
+    n_lasers = check_n_lasers(n_lasers)
     column = check_int_range(column, "column", low=0)
     if points.shape[1] <= column:
         raise FormatError(
@@ -152,7 +152,7 @@ def column_rings(points: np.ndarray, *, n_lasers: int = 32, column: int = 4) -> 
         )
     if ring.size:
         lo, hi = ring.min(), ring.max()
-        el = _elevation_deg(points)
+        el = elevation_deg(points)
         if lo != hi and np.median(el[ring == lo]) < np.median(el[ring == hi]):
             ring = (n_lasers - 1) - ring
     return ring.astype(np.int32)
@@ -228,13 +228,11 @@ def _best_offset(r, z, offsets):
     return best_h
 
 
-def _generic_cones(
-    r, z, k, *, min_range=3.0, bands=8, rounds=10, ridge=_RIDGE, bound=_OFFSET_BOUND
-):
+def _generic_cones(r, z, k, *, min_range=3.0, bands=8, rounds=10, ridge=RIDGE, bound=OFFSET_BOUND):
     """Estimate k laser cones from the cloud alone: (slope, offset) or None on failure."""
     use = r > min_range
     if np.count_nonzero(use) < 3 * k:
-        use = r > _MIN_FIT_RANGE
+        use = r > MIN_FIT_RANGE
     if np.count_nonzero(use) < 3 * k:
         return None
     ru, zu = r[use], z[use]
@@ -260,7 +258,7 @@ def _generic_cones(
         # in: a laser seen at one range only (a ring on the road) cannot fix it by itself.
         votes = np.bincount(lab * bands + band, minlength=k * bands).reshape(k, bands)
         prior = h_band[np.argmax(votes, axis=1)]
-        return _fit_cones(ru, zu, lab, k, ridge=ridge, offset_prior=prior, offset_bound=bound)
+        return fit_cones(ru, zu, lab, k, ridge=ridge, offset_prior=prior, offset_bound=bound)
 
     # k-lines in the (r, z) plane with a repair step: cones that duplicate a neighbour, hold
     # almost no points or sit far off the common height are freed and re-seeded by splitting
@@ -317,9 +315,9 @@ def cone_residual_deg(
     About 0 for a scan of the profiled sensor (KITTI's cones are exact); tenths of a degree
     or more for another sensor.
     """
-    points = _check_points(points)
-    r, z = _polar(points)
-    fit = r >= _MIN_FIT_RANGE
+    points = check_lidar_points(points)
+    r, z = polar_coordinates(points)
+    fit = r >= MIN_FIT_RANGE
     if not fit.any():
         return float("inf")
     slope = np.tan(np.radians(profile.beam_angle_deg))
@@ -327,7 +325,7 @@ def cone_residual_deg(
     if ring is None:
         k = _assign_nearest_cone(r[fit], z[fit], slope, offset)
     else:
-        k = _check_ring(ring, points.shape[0], profile.n_lasers)[fit].astype(np.intp)
+        k = check_ring_labels(ring, points.shape[0], profile.n_lasers)[fit].astype(np.intp)
     resid = np.abs((z[fit] - offset[k]) / r[fit] - slope[k])
     return float(np.degrees(np.median(resid)))
 
@@ -370,12 +368,12 @@ def elevation_rings(
     laser as to their own (wrong laser count, wrong profile, or a sensor whose lasers are not
     separable by elevation).
     """
-    points = _check_points(points)
-    n_lasers = _check_n_lasers(n_lasers)
+    points = check_lidar_points(points)
+    n_lasers = check_n_lasers(n_lasers)
     refine = check_int_range(refine, "refine", low=0)
     check_non_negative(profile_tolerance_deg, "profile_tolerance_deg", allow_none=True)
-    r, z = _polar(points)
-    fit = r >= _MIN_FIT_RANGE
+    r, z = polar_coordinates(points)
+    fit = r >= MIN_FIT_RANGE
     if profile is not None and profile_tolerance_deg is not None:
         misfit = cone_residual_deg(points, profile)
         if misfit > profile_tolerance_deg:
@@ -396,8 +394,8 @@ def elevation_rings(
         slope, offset = slope0, offset0
         label = _assign_nearest_cone(r, z, slope, offset)
         for _ in range(refine):
-            fs, fo, count = _fit_cones(
-                r[fit], z[fit], label[fit], n_lasers, ridge=_RIDGE, offset_prior=offset0
+            fs, fo, count = fit_cones(
+                r[fit], z[fit], label[fit], n_lasers, ridge=RIDGE, offset_prior=offset0
             )
             keep = (count >= 50) & np.isfinite(fs)
             slope, offset = np.where(keep, fs, slope0), np.where(keep, fo, offset0)
@@ -486,8 +484,8 @@ def recover_rings_with_method(
     ``profile_tolerance_deg``: see :func:`elevation_rings`.
     """
     check_choice(method, "method", RING_METHODS)
-    points = _check_points(points)
-    n_lasers = _check_n_lasers(n_lasers)
+    points = check_lidar_points(points)
+    n_lasers = check_n_lasers(n_lasers)
     if method == "column":
         return column_rings(points, n_lasers=n_lasers, column=column), "column"
     if method == "scan-order":

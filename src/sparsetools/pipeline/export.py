@@ -13,7 +13,6 @@ so a 4-beam or radar variant of the benchmark drops into such code unchanged.
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar
@@ -25,7 +24,7 @@ from .batch import RunSummary
 from .core import BatchJob, FrameStats, FrameTask
 from .provenance import option_names, settings_dict
 
-__all__ = ["LAYOUTS", "ExportJob", "ExportSettings", "ExportStats", "drive_splits"]
+__all__ = ["LAYOUTS", "ExportJob", "ExportSettings", "ExportStats"]
 
 LAYOUTS = ("kitti-dc", "kitti-selection")
 
@@ -133,18 +132,3 @@ def _target(out: Path, key: FrameKey, s: ExportSettings, split: str | None) -> P
     if s.layout == "kitti-selection":
         return out / s.name / f"{key.sequence}_{s.name}_{key.frame}_{cam}.png"
     return out / split / key.sequence / "proj_depth" / s.name / cam / f"{key.frame}.png"
-
-
-def drive_splits(tree: str | os.PathLike) -> dict[str, str]:
-    """``drive -> split`` of a KITTI depth-completion tree (``{train,val}/<drive>/``)."""
-    from ..io.sources.kitti import _proj_depth_drives
-
-    out = {}
-    for drive, split in _proj_depth_drives(Path(tree)):
-        if split is not None:
-            out[drive.name] = split
-    if not out:
-        raise FormatError(
-            f"{tree}: no {{train,val}}/<drive>/proj_depth/ folders to take splits from"
-        )
-    return out

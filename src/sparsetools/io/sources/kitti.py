@@ -28,6 +28,7 @@ from .tree import IMAGE_SUFFIXES, FileIndex, file_stem
 
 __all__ = [
     "DC_NAMES",
+    "drive_splits",
     "is_kitti_depth_completion",
     "is_kitti_object",
     "is_kitti_raw",
@@ -227,7 +228,7 @@ def kitti_object_index(path: str | os.PathLike, *, camera: int = 2) -> FileIndex
 # -- KITTI depth completion --------------------------------------------------------------------
 
 
-def _proj_depth_drives(root: Path) -> list[tuple[Path, str | None]]:
+def proj_depth_drives(root: Path) -> list[tuple[Path, str | None]]:
     """(drive folder, split) of every ``<drive>/proj_depth`` within three levels of ``root``."""
     out = []
     for pattern in ("proj_depth", "*/proj_depth", "*/*/proj_depth", "*/*/*/proj_depth"):
@@ -244,7 +245,7 @@ def _proj_depth_drives(root: Path) -> list[tuple[Path, str | None]]:
 
 def is_kitti_depth_completion(path: str | os.PathLike) -> bool:
     p = Path(path)
-    return p.is_dir() and bool(_proj_depth_drives(p))
+    return p.is_dir() and bool(proj_depth_drives(p))
 
 
 def kitti_depth_completion_index(
@@ -266,7 +267,7 @@ def kitti_depth_completion_index(
         The ``proj_depth`` map set (e.g. ``velodyne_raw_4beam``).
     """
     root = Path(path)
-    drives = _proj_depth_drives(root)
+    drives = proj_depth_drives(root)
     if not drives:
         raise FormatError(
             f"{option}: {root} is not a KITTI depth-completion tree (no <drive>/proj_depth/)"
@@ -336,3 +337,16 @@ def kitti_val_selection_index(
     return FileIndex(
         root, files, layout="kitti-val-selection", splits=dict.fromkeys(files, "val_selection")
     )
+
+
+def drive_splits(tree: str | os.PathLike) -> dict[str, str]:
+    """``drive -> split`` of a KITTI depth-completion tree (``{train,val}/<drive>/``)."""
+    out = {}
+    for drive, split in proj_depth_drives(Path(tree)):
+        if split is not None:
+            out[drive.name] = split
+    if not out:
+        raise FormatError(
+            f"{tree}: no {{train,val}}/<drive>/proj_depth/ folders to take splits from"
+        )
+    return out
