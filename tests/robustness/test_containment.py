@@ -331,3 +331,23 @@ def test_pipeline_never_replaces_a_users_report(tmp_path):
     assert run("pipeline", config, "-o", out, "--overwrite").exit_code == 0
     assert "my own notes" not in (out / "report.md").read_text()
     assert run("pipeline", config, "-o", out).exit_code == 0  # its own report: rewritten
+
+
+# -- a calibration of another sensor ----------------------------------------------------------------
+
+
+def test_a_kitti_scan_with_a_nuscenes_calibration_is_refused(tmp_path, nuscenes_demo):
+    """A KITTI Velodyne scan projected with a nuScenes LIDAR_TOP calibration gave 1600x900 maps
+    in silence; the other way round too: both are refused, naming the sensor."""
+    kitti = ROOT / "sample_data" / "kitti"
+    r = run("project", kitti / "velodyne" / "000001.bin", "--calib",
+            nuscenes_demo / "calib_derived_from_pkl.json", "-o", tmp_path / "a")  # fmt: skip
+    assert r.exit_code == 1 and "nuScenes LIDAR_TOP" in r.stderr and "KITTI Velodyne" in r.stderr
+    assert not list((tmp_path / "a").rglob("*.png"))
+    sweep = next(nuscenes_demo.glob("*LIDAR_TOP*.pcd.bin"))
+    r = run("project", sweep, "--calib", kitti / "calib" / "000001.txt", "--image-size",
+            "1242x375", "-o", tmp_path / "b")  # fmt: skip
+    assert r.exit_code == 1 and "is for the KITTI Velodyne" in r.stderr, r.output
+    ok = run("project", sweep, "--calib", nuscenes_demo / "calib_derived_from_pkl.json",
+             "-o", tmp_path / "c")  # fmt: skip
+    assert ok.exit_code == 0, ok.output

@@ -26,6 +26,7 @@ from .atomic import atomic_path
 __all__ = [
     "PRINCIPAL_POINT_MARGIN",
     "check_principal_point",
+    "check_sensor",
     "frame_calibration",
     "load_calibration",
     "read_json_calib",
@@ -154,7 +155,8 @@ def read_kitti_object_calib(
     K = _split_projection(P, path)
     T = _homogeneous(R0) @ _homogeneous(Tr)
     w, h = image_size if image_size is not None else (None, None)
-    return Calibration(K=K, T_cam_from_sensor=T, P=P, width=w, height=h, source=str(path))
+    return Calibration(K=K, T_cam_from_sensor=T, P=P, width=w, height=h, source=str(path),
+                       extra={"sensor": SENSOR_KITTI})  # fmt: skip
 
 
 def read_kitti_raw_calib(folder: str | os.PathLike, *, camera: int = 2) -> Calibration:
@@ -187,6 +189,7 @@ def read_kitti_raw_calib(folder: str | os.PathLike, *, camera: int = 2) -> Calib
         width=int(round(S[0])),
         height=int(round(S[1])),
         source=str(folder),
+        extra={"sensor": SENSOR_KITTI},
     )
 
 
@@ -257,7 +260,8 @@ def _json_calibration(d: dict, path: Path, camera) -> Calibration:
         K = _as_array(cam, "cam2img", (3, 3), path)
         T = _as_array(cam, "lidar2cam", (4, 4), path)
         w, h = _size(cam, "width", 1600, path), _size(cam, "height", 900, path)
-        return Calibration(K=K, T_cam_from_sensor=T, width=w, height=h, source=f"{path}:{name}")
+        return Calibration(K=K, T_cam_from_sensor=T, width=w, height=h, source=f"{path}:{name}",
+                           extra={"sensor": SENSOR_NUSCENES_LIDAR})  # fmt: skip
     K = _as_array(d, "K", (3, 3), path)
     T = _as_array(d, "T_cam_from_sensor", (4, 4), path)
     P = _as_array(d, "P", (3, 4), path) if d.get("P") is not None else None
@@ -388,6 +392,37 @@ def load_calibration(
     if image_size is not None:
         calib = calib.with_size(*image_size)
     return calib
+
+
+#: The sensor a calibration's ``T_cam_from_sensor`` starts from, where its format says it
+#: (``Calibration.extra["sensor"]``): a KITTI calibration is the Velodyne's, an mmdetection3d
+#: nuScenes one the LIDAR_TOP's.
+SENSOR_KITTI = "KITTI Velodyne HDL-64E"
+SENSOR_NUSCENES_LIDAR = "nuScenes LIDAR_TOP"
+#: Cloud kinds (:func:`sparsetools.io.pointcloud.cloud_kind`) each sensor writes.
+_CLOUDS_OF = {SENSOR_KITTI: ("kitti-bin",), SENSOR_NUSCENES_LIDAR: ("nuscenes-bin",)}
+_NAMES_OF_KIND = {"kitti-bin": "a KITTI Velodyne .bin scan", "nuscenes-bin":
+                  "a nuScenes LIDAR_TOP .pcd.bin sweep", "radar-pcd": "a nuScenes radar .pcd"}  # fmt: skip
+
+
+def check_sensor(calib: Calibration, cloud: str | os.PathLike) -> None:
+    """Refuse a calibration of one dataset's sensor applied to another dataset's cloud (a
+    KITTI scan with a nuScenes calibration gives maps of the wrong camera and size, silently).
+
+    Only formats that say which sensor they are are compared: a KITTI ``.bin`` scan, a
+    nuScenes ``.pcd.bin`` or radar ``.pcd``; a KITTI or an mmdetection3d nuScenes calibration.
+    """
+    from .pointcloud import cloud_kind
+
+    sensor = calib.extra.get("sensor") if isinstance(calib.extra, dict) else None
+    if sensor not in _CLOUDS_OF:
+        return
+    kind = cloud_kind(cloud)
+    if kind in _NAMES_OF_KIND and kind not in _CLOUDS_OF[sensor]:
+        raise CalibrationError(
+            f"calibration {calib.source or ''} is for the {sensor} but {cloud} is "
+            f"{_NAMES_OF_KIND[kind]}: give the calibration of the sensor that made the cloud"
+        )
 
 
 #: The principal point of a camera's own (uncropped) images lies within this fraction of the

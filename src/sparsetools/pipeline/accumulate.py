@@ -122,10 +122,12 @@ class AccumulateInput:
 
 
 def _calibration(inp: AccumulateInput, image_size) -> Calibration:
-    from ..io.calib import frame_calibration
+    from ..io.calib import check_sensor, frame_calibration
 
-    return frame_calibration(calib_path=inp.calib_path, calibration=inp.calibration,
-                             image=inp.image, image_size=image_size)  # fmt: skip
+    calib = frame_calibration(calib_path=inp.calib_path, calibration=inp.calibration,
+                              image=inp.image, image_size=image_size)  # fmt: skip
+    check_sensor(calib, inp.scans[inp.reference])
+    return calib
 
 
 def _read_mask(path: str, calib: Calibration) -> np.ndarray:

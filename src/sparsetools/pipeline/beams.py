@@ -316,9 +316,11 @@ def _output_suffix(settings: BeamsSettings, cloud: Path) -> str:
 
 
 def _frame_calibration(inp: BeamsInput, image_size):
-    from ..io.calib import frame_calibration
+    from ..io.calib import check_sensor, frame_calibration
 
-    return frame_calibration(calib_path=inp.calib_path, image=inp.image, image_size=image_size)
+    calib = frame_calibration(calib_path=inp.calib_path, image=inp.image, image_size=image_size)
+    check_sensor(calib, inp.cloud)
+    return calib
 
 
 def _density_pct(points: np.ndarray, calib) -> float:

@@ -134,10 +134,11 @@ class ProjectInput:
 
 def resolve_calibration(inp: ProjectInput, settings: ProjectSettings) -> Calibration:
     """The calibration a frame's depth map uses: loaded, sized and checked against the
-    frame's image, resized, cropped (:func:`sparsetools.io.calib.frame_calibration`)."""
-    from ..io.calib import frame_calibration
+    frame's image and cloud, resized, cropped (:func:`sparsetools.io.calib.frame_calibration`,
+    :func:`~sparsetools.io.calib.check_sensor`)."""
+    from ..io.calib import check_sensor, frame_calibration
 
-    return frame_calibration(
+    calib = frame_calibration(
         calib_path=inp.calib_path,
         calibration=inp.calibration,
         camera=settings.camera,
@@ -146,6 +147,8 @@ def resolve_calibration(inp: ProjectInput, settings: ProjectSettings) -> Calibra
         resize=settings.resize,
         crop=settings.crop,
     )
+    check_sensor(calib, inp.cloud)
+    return calib
 
 
 # -- the per-frame job ---------------------------------------------------------------------------
@@ -318,8 +321,8 @@ class ProjectJob(BatchJob[ProjectInput]):
         from ..ops.projection import project_points
 
         s, inp = self.settings, task.inputs
+        points = _load_points(inp)  # a damaged cloud is named before a mismatched calibration
         calib = resolve_calibration(inp, s)
-        points = _load_points(inp)
         depth, n_in_image = project_points(
             points,
             calib,
