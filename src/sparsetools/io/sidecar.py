@@ -32,6 +32,7 @@ __all__ = [
     "MAX_SIDECAR_BYTES",
     "check_field",
     "check_fields",
+    "check_manifest_row",
     "check_same_types",
     "field_error",
     "json_depth_exceeds",
@@ -382,3 +383,17 @@ def read_record_sidecar(
     except FormatError as exc:
         raise FormatError(f"{exc}{hint}") from exc
     return side, record
+
+
+def check_manifest_row(row: dict, schema, side_path: str | os.PathLike) -> None:
+    """Refuse a sidecar's row that the manifest's column types cannot hold (an int beyond
+    int32, a string where a number goes...), naming the sidecar."""
+    import pyarrow as pa
+
+    try:
+        pa.Table.from_pylist([row], schema=schema)
+    except (pa.ArrowException, OverflowError, TypeError, ValueError) as exc:
+        why = " ".join(str(exc).split())[:200]
+        raise FormatError(
+            f"{side_path}: a value does not fit the manifest ({why}); rerun with --overwrite"
+        ) from exc

@@ -30,7 +30,7 @@ import numpy as np
 
 from ..errors import FormatError, ParameterError
 from ..io.atomic import atomic_path
-from ..io.sidecar import read_record_sidecar
+from ..io.sidecar import check_manifest_row, read_record_sidecar
 from ..io.sources import Frame
 from ..validate import check_choice, check_int_range, check_pair, check_positive
 from .batch import RunSummary
@@ -394,19 +394,6 @@ def _manifest_row(side_path: Path, expect: dict) -> dict:
     }  # fmt: skip
 
 
-def _check_row(row: dict, schema, side_path: Path) -> None:
-    """Refuse a row the manifest's column types cannot hold (an int beyond int32...)."""
-    import pyarrow as pa
-
-    try:
-        pa.Table.from_pylist([row], schema=schema)
-    except (pa.ArrowException, OverflowError, TypeError, ValueError) as exc:
-        why = " ".join(str(exc).split())[:200]
-        raise FormatError(
-            f"{side_path}: a value does not fit the manifest ({why}); rerun with --overwrite"
-        ) from exc
-
-
 def write_defocus_manifest(out_dir: str | os.PathLike, tasks: list[FrameTask]) -> tuple[Path, int]:
     """Rebuild ``OUT/manifest.parquet`` from the sidecars of the complete tasks (atomic write).
 
@@ -425,7 +412,7 @@ def write_defocus_manifest(out_dir: str | os.PathLike, tasks: list[FrameTask]) -
             expect = {"frame_id": t.frame_id, "output": _relative(t.outputs["image"], out),
                       "radius": _relative(t.outputs["radius"], out)}  # fmt: skip
             row = _manifest_row(side_path, expect)
-            _check_row(row, schema, side_path)
+            check_manifest_row(row, schema, side_path)
             rows.append(row)
     table = pa.Table.from_pylist(rows, schema=schema)
     path = Path(out_dir) / MANIFEST

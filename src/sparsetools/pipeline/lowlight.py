@@ -19,7 +19,7 @@ from typing import ClassVar
 
 from ..errors import FormatError
 from ..io.atomic import atomic_path
-from ..io.sidecar import read_record_sidecar
+from ..io.sidecar import check_manifest_row, read_record_sidecar
 from ..io.sources import Frame, FrameKey
 from ..ops.lowlight import LowLightParams
 from ..validate import check_int_range
@@ -286,19 +286,6 @@ def _manifest_row(side_path: Path, frame_id: str, output: str, variant: int) -> 
     }  # fmt: skip
 
 
-def _check_row(row: dict, schema, side_path: Path) -> None:
-    """Refuse a row the manifest's column types cannot hold (an int beyond int32...)."""
-    import pyarrow as pa
-
-    try:
-        pa.Table.from_pylist([row], schema=schema)
-    except (pa.ArrowException, OverflowError, TypeError, ValueError) as exc:
-        why = " ".join(str(exc).split())[:200]
-        raise FormatError(
-            f"{side_path}: a value does not fit the manifest ({why}); rerun with --overwrite"
-        ) from exc
-
-
 def write_manifest(out_dir: str | os.PathLike, tasks: list[FrameTask]) -> tuple[Path, int]:
     """Rebuild ``OUT/manifest.parquet`` from the sidecars of the complete tasks (atomic write).
 
@@ -316,7 +303,7 @@ def write_manifest(out_dir: str | os.PathLike, tasks: list[FrameTask]) -> tuple[
         images, records = _images_and_records(t)
         for k, (img_path, side_path) in enumerate(zip(images, records, strict=True)):
             row = _manifest_row(side_path, t.frame_id, Path(img_path).name, k)
-            _check_row(row, schema, side_path)
+            check_manifest_row(row, schema, side_path)
             rows.append(row)
     table = pa.Table.from_pylist(rows, schema=schema)
     path = Path(out_dir) / MANIFEST
