@@ -864,3 +864,32 @@ def test_foreign_sparse_parquet_is_refused(frame, tmp_path):
     assert_clean_failure(r, 1, "sparse.parquet")
     assert (out / "sparse.parquet").read_bytes() == before
     assert files_under(out) == ["sparse.parquet"]
+
+
+# -- --filter-occluded ----------------------------------------------------------------------------
+
+
+@pytest.mark.real
+def test_filter_occluded_removes_what_the_kernel_removes_and_is_recorded(real_dir, tmp_path):
+    from sparsetools.io.calib import load_calibration
+    from sparsetools.ops.occlusion import filter_occluded
+
+    drive = real_dir / "kitti-raw-sequence-2011_09_26"
+    scan = drive / "velodyne_points" / "data" / "0000000000.bin"
+    args = (scan, "--calib", drive, "--image-size", "1242x375", "--format", "npy")
+    plain, filt = tmp_path / "plain", tmp_path / "filt"
+    assert run("project", *args, "-o", plain).exit_code == 0
+    r = run("project", *args, "-o", filt, "--filter-occluded", "--json")
+    assert r.exit_code == 0, r.output
+    summary = json.loads(r.output)
+    a = np.load(plain / "0000000000.npy")
+    b = np.load(filt / "0000000000.npy")
+    fx = load_calibration(drive, camera=2).fx
+    expected, removed = filter_occluded(a, fx=fx)
+    np.testing.assert_array_equal(b, expected)
+    # A few per cent of a real scan are see-through points; the rest is kept untouched.
+    assert 0 < removed.sum() < 0.1 * (a > 0).sum()
+    assert summary["occluded_pixels"] == int(removed.sum())
+    # The option is part of the folder's record: a rerun without it is refused, naming it.
+    again = run("project", *args, "-o", filt)
+    assert again.exit_code != 0 and "--filter-occluded" in again.output

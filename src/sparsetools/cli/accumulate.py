@@ -12,6 +12,7 @@ from .options import (
     calib_option,
     deprecated,
     emit_summary,
+    filter_occluded_option,
     image_option,
     image_size_option,
     max_depth_option,
@@ -91,6 +92,7 @@ from .options import (
     help="Drop other scans' points farther than (1 + this) x the nearest depth in their window.",
 )  # fmt: skip
 @click.option("--no-occlusion", is_flag=True, help="No occlusion test.")
+@filter_occluded_option
 @click.option(
     "--occlusion-foreground",
     type=click.Choice(["all", "own"]),
@@ -136,6 +138,7 @@ def accumulate(
     pixel_offset,
     occlusion_rel,
     no_occlusion,
+    filter_occluded,
     occlusion_foreground,
     consistency_rel,
     no_consistency,
@@ -184,6 +187,10 @@ def accumulate(
         raise click.UsageError(f"{icp_given[0]} goes with --icp")
     if icp and poses is not None:
         raise click.UsageError("give --poses or --icp, not both")
+    if filter_occluded and no_occlusion:
+        raise click.UsageError(
+            "--filter-occluded applies the occlusion test: not with --no-occlusion"
+        )
     if poses is None and poses_frame != "auto":
         raise click.UsageError("--poses-frame goes with --poses")
     geometry = build(
@@ -197,6 +204,7 @@ def accumulate(
         footprint_m=footprint_m,
         min_radius_px=min_radius_px,
         max_radius_px=max_radius_px,
+        occlude_own=filter_occluded,
     )
     icp_settings = build(IcpSettings, min_range=icp_min_range, voxel=icp_voxel,
                          max_distance=icp_max_distance)  # fmt: skip

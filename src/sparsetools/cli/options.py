@@ -508,6 +508,18 @@ def pixel_offset_option(f):
     )(f)
 
 
+def filter_occluded_option(f):
+    """``--filter-occluded``: drop the points the camera cannot see (ops.occlusion)."""
+    return click.option(
+        "--filter-occluded",
+        is_flag=True,
+        help="Drop see-through points: a point farther than 1.1 x the nearest point within "
+        "about 0.1 m of it in the image (the LiDAR saw past a foreground edge that the camera "
+        "cannot see past); accumulate: frame t's own points too, with its --occlusion-rel and "
+        "--footprint-m. See docs/project.md.",
+    )(f)
+
+
 # -- the camera rig and nuScenes ----------------------------------------------------------------
 
 

@@ -12,6 +12,7 @@ from .options import (
     camera_option,
     crop_option,
     emit_summary,
+    filter_occluded_option,
     format_option,
     image_option,
     image_size_option,
@@ -46,6 +47,7 @@ from .options import (
 @resize_option
 @crop_option
 @pixel_offset_option
+@filter_occluded_option
 @click.option(
     "--kitti-raw",
     type=click.Path(exists=True, file_okay=False, path_type=Path),
@@ -83,6 +85,7 @@ def project(
     resize,
     crop,
     pixel_offset,
+    filter_occluded,
     kitti_raw,
     kitti_object,
     nuscenes,
@@ -110,6 +113,7 @@ def project(
       sparsetools project raw/2011_09_26 -o out/raw       # every drive of the date
       sparsetools project --nuscenes nuscenes --sensor RADAR_FRONT --camera CAM_FRONT \\
           --sweeps 5 --resize 0.5 --crop 800x350+0+100 -o out/radar
+      sparsetools project raw/2011_09_26 -o out/gt --filter-occluded  # no see-through
     """
     from ..io.sources import cloud_source
     from ..pipeline import run_job
@@ -129,6 +133,7 @@ def project(
         crop=crop,
         camera=source.camera,
         image_size=image_size,
+        filter_occluded=filter_occluded,
     )
     summary = run_job(ProjectJob(settings), source.frames, out_dir, batch=batch,
                       inputs=source.inputs)  # fmt: skip

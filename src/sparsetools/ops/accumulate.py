@@ -22,6 +22,8 @@ or :func:`sparsetools.ops.registration.chain_poses` of ICP results):
      ``depth > (1 + occlusion_rel) * F``, with F the minimum depth of the foreground points
      in the window (``occlusion_foreground``: frame t's own points and the other scans'
      points that passed the tests above, or frame t's own scan only).
+   With ``occlude_own`` frame t's own points take the occlusion test too (their see-through
+   points, :mod:`sparsetools.ops.occlusion`); otherwise they are all kept.
    The window radius follows the point's depth, ``r = clip(rint(fx * footprint_m / depth),
    min_radius_px, max_radius_px)``: a window of about ``2 * footprint_m`` metres. With a
    fixed pixel window a tilted surface occludes itself far away (along a road seen from
@@ -41,7 +43,7 @@ Everything is vectorised (numpy, OpenCV's min filter, the numba z-buffer of
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -51,6 +53,7 @@ from ..validate import (
     check_all_finite,
     check_choice,
     check_dtype,
+    check_flag,
     check_instance,
     check_int_range,
     check_non_negative,
@@ -60,6 +63,7 @@ from ..validate import (
     check_positive,
     check_shape,
 )
+from .occlusion import OcclusionSettings, occluded_points, occlusion_radius, window_minimum
 from .projection import project_points, project_points_with_index, rigid_inverse
 
 __all__ = [
@@ -72,8 +76,8 @@ __all__ = [
 
 OCCLUSION_FOREGROUNDS = ("all", "own")
 
-# Per-point outcome codes (reasons are tested in this order; masked, inconsistent and
-# occluded apply to the other scans only).
+# Per-point outcome codes (reasons are tested in this order; masked and inconsistent apply to
+# the other scans only, occluded to frame t's own points too with ``occlude_own``).
 (
     _KEPT,
     _NON_FINITE,
@@ -113,6 +117,9 @@ class AccumulateSettings:
         ``occlusion_rel`` so that the road does not occlude itself).
     min_radius_px, max_radius_px : int
         Bounds of the window radius in pixels (default 1 and 8).
+    occlude_own : bool
+        Apply the occlusion test to frame t's own points too (default False): drops its
+        see-through points, as KITTI-grade ground truth needs (:mod:`sparsetools.ops.occlusion`).
     """
 
     min_depth: float = 0.1
@@ -124,8 +131,11 @@ class AccumulateSettings:
     footprint_m: float = 0.1
     min_radius_px: int = 1
     max_radius_px: int = 8
+    # Recorded by batch runs only when set, so folders of earlier versions resume.
+    occlude_own: bool = field(default=False, metadata={"omit_default": True})
 
     def __post_init__(self) -> None:
+        check_flag(self.occlude_own, "occlude_own")
         lo = check_non_negative(self.min_depth, "min_depth")
         hi = check_positive(self.max_depth, "max_depth", allow_none=True)
         check_ordered(lo, hi, "min_depth", "max_depth")
@@ -248,27 +258,6 @@ def _check_inputs(scans, poses, calib, reference, moving_mask):
     return checked, poses, int(reference), moving_mask, width, height
 
 
-def _min_maps(depth: np.ndarray, radii: np.ndarray) -> dict[int, np.ndarray]:
-    """Minimum of the non-empty pixels over a (2r+1)^2 window, +inf where none, per radius."""
-    import cv2
-
-    inf_map = np.where(depth > 0, depth, np.float32(np.inf)).astype(np.float32)
-    out = {}
-    for r in np.unique(radii).tolist():
-        out[r] = (
-            inf_map if r == 0 else cv2.erode(inf_map, np.ones((2 * r + 1, 2 * r + 1), np.uint8))
-        )
-    return out
-
-
-def _window_min(maps: dict[int, np.ndarray], radius, iv, iu) -> np.ndarray:
-    out = np.empty(iv.shape[0], np.float64)
-    for r, m in maps.items():
-        sel = radius == r
-        out[sel] = m[iv[sel], iu[sel]]
-    return out
-
-
 def accumulate_scans(
     scans: Sequence[np.ndarray],
     T_world_from_velo: np.ndarray | Sequence[np.ndarray],
@@ -366,31 +355,40 @@ def accumulate_scans(
         hit = other & moving_mask[iv, iu]
         code[hit] = _MASKED
         other &= ~hit
-    fx = calib.fx
-    radius = np.zeros(n, np.int64)
-    with np.errstate(divide="ignore"):
-        r_float = np.rint(fx * s.footprint_m / np.where(other, w, 1.0))
-    radius[other] = np.clip(r_float[other], s.min_radius_px, s.max_radius_px).astype(np.int64)
+    window = OcclusionSettings(
+        rel=0.0 if s.occlusion_rel is None else s.occlusion_rel, footprint_m=s.footprint_m,
+        min_radius_px=s.min_radius_px, max_radius_px=s.max_radius_px,
+    )  # fmt: skip
     idx_other = np.flatnonzero(other)
     zo = w[idx_other]
-    ro, vo, uo = radius[idx_other], iv[idx_other], iu[idx_other]
+    ro = occlusion_radius(zo, fx=calib.fx, settings=window)
+    vo, uo = iv[idx_other], iu[idx_other]
     own_map = None
     if s.consistency_rel is not None or s.occlusion_foreground == "own":
         own_map = _zbuffer(xyz[usable_own], calib, s)
     if s.consistency_rel is not None and idx_other.size:
-        near = _window_min(_min_maps(own_map, ro), ro, vo, uo)
+        near = window_minimum(own_map, ro, vo, uo)
         # An empty window (+inf) means frame t measured nothing there: nothing to contradict.
         bad = np.isfinite(near) & (zo * (1.0 + s.consistency_rel) < near)
         code[idx_other[bad]] = _INCONSISTENT
-    if s.occlusion_rel is not None and idx_other.size:
+    test_own = s.occlude_own and bool(usable_own.any())
+    if s.occlusion_rel is not None and (idx_other.size or test_own):
         if s.occlusion_foreground == "own":
             fg_map = own_map
         else:
             # Moving points found above must not hide the static background behind them.
             fg_map = _zbuffer(xyz[usable_own | (code == _KEPT) & other], calib, s)
-        fg = _window_min(_min_maps(fg_map, ro), ro, vo, uo)
-        hidden = (code[idx_other] == _KEPT) & (zo > (1.0 + s.occlusion_rel) * fg)
-        code[idx_other[hidden]] = _OCCLUDED
+        if idx_other.size:
+            fg = window_minimum(fg_map, ro, vo, uo)
+            hidden = (code[idx_other] == _KEPT) & (zo > (1.0 + s.occlusion_rel) * fg)
+            code[idx_other[hidden]] = _OCCLUDED
+        if test_own:
+            # Frame t's see-through points: its LiDAR saw background past a foreground edge
+            # that the camera cannot see past (ops.occlusion).
+            idx_own = np.flatnonzero(usable_own)
+            hidden = occluded_points(iu[idx_own], iv[idx_own], w[idx_own], fg_map,
+                                     fx=calib.fx, settings=window)  # fmt: skip
+            code[idx_own[hidden]] = _OCCLUDED
 
     # 3. One z-buffer over the kept points.
     kept = np.flatnonzero(code == _KEPT)

@@ -100,7 +100,8 @@ class AccumulateRunSettings:
         flat = {k: v for k, v in settings_dict(self).items() if k not in ("icp", "accumulate")}
         flat.update({f"icp_{k}": v for k, v in settings_dict(self.icp).items()})
         flat.update(settings_dict(self.accumulate))
-        return flat, {"pose_source": "--poses/--icp", "window": "--neighbours"}
+        return flat, {"pose_source": "--poses/--icp", "window": "--neighbours",
+                      "occlude_own": "--filter-occluded"}  # fmt: skip
 
 
 @dataclass(frozen=True)

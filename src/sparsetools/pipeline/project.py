@@ -35,6 +35,7 @@ from ..io.containment import remove_output
 from ..io.sources import Frame, FrameKey, Sweep
 from ..validate import (
     check_choice,
+    check_flag,
     check_non_negative,
     check_ordered,
     check_positive,
@@ -81,6 +82,9 @@ class ProjectSettings:
         KITTI camera index or nuScenes camera name, passed to the calibration reader.
     image_size : (width, height), optional
         Size of the camera image before resize/crop; overrides calibration and image.
+    filter_occluded : bool
+        Drop the points the camera cannot see (see-through points behind a foreground edge,
+        :func:`sparsetools.ops.occlusion.filter_occluded` with its defaults) from the map.
     """
 
     fmt: str = field(default="png", metadata={"option": "--format"})
@@ -91,9 +95,13 @@ class ProjectSettings:
     crop: tuple[int, int, int, int] | None = None
     camera: int | str = 2
     image_size: tuple[int, int] | None = None
+    filter_occluded: bool = field(
+        default=False, metadata={"option": "--filter-occluded", "omit_default": True}
+    )
 
     def __post_init__(self) -> None:
         check_choice(self.fmt, "--format", FORMATS)
+        check_flag(self.filter_occluded, "--filter-occluded")
         check_non_negative(self.min_depth, "min_depth")
         check_positive(self.max_depth, "max_depth", allow_none=True)
         check_ordered(self.min_depth, self.max_depth, "min_depth", "max_depth")
@@ -215,6 +223,7 @@ class ProjectStats(FrameStats):
     clipped: int
     empty: int
     empty_reason: str | None = None
+    occluded: int | None = None  # pixels removed by --filter-occluded (None: filter off)
 
 
 @dataclass(frozen=True)
@@ -331,6 +340,12 @@ class ProjectJob(BatchJob[ProjectInput]):
             pixel_offset=s.pixel_offset,
             return_count=True,
         )
+        occluded = None
+        if s.filter_occluded:
+            from ..ops.occlusion import filter_occluded
+
+            depth, removed = filter_occluded(depth, fx=calib.fx)
+            occluded = int(np.count_nonzero(removed))
         depth_out = task.outputs["depth"]
         clipped = 0
         if s.fmt == "png":
@@ -376,6 +391,7 @@ class ProjectJob(BatchJob[ProjectInput]):
             clipped=int(clipped),
             empty=int(valid == 0),
             empty_reason=reason,
+            occluded=occluded,
         )
 
     def finish(self, summary: RunSummary, tasks: list[FrameTask], out_dir: Path) -> dict:
@@ -403,7 +419,12 @@ class ProjectJob(BatchJob[ProjectInput]):
             more = f" and {len(empty) - 3} more" if len(empty) > 3 else ""
             log.warning("%d empty depth map(s): %s%s", len(empty), shown, more)
         seconds = summary.seconds
+        occluded = (
+            {"occluded_pixels": sum(st.occluded or 0 for st in stats)}
+            if self.settings.filter_occluded else {}
+        )  # fmt: skip
         return {
+            **occluded,
             "points_in": sum(st.points_in for st in stats),
             "points_in_image": sum(st.points_in_image for st in stats),
             "valid_pixels": int(valid),

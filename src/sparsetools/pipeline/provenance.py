@@ -86,7 +86,8 @@ def settings_dict(settings) -> dict:
     """JSON-normalised settings of a dataclass (or mapping), comparable with a record's copy.
 
     A dataclass field with ``metadata={"provenance": False}`` is left out (it does not change
-    what is computed).
+    what is computed); one with ``metadata={"omit_default": True}`` (an option added after
+    0.2.0) is left out while it holds its default, so older folders made without it resume.
     """
     if settings is None:
         return {}
@@ -95,6 +96,7 @@ def settings_dict(settings) -> dict:
             f.name: getattr(settings, f.name)
             for f in dataclasses.fields(settings)
             if f.metadata.get("provenance", True)
+            and not (f.metadata.get("omit_default") and getattr(settings, f.name) == f.default)
         }
     else:
         items = dict(settings)
