@@ -7,6 +7,8 @@ Run from the repository root: ``.venv/bin/python docs/img/make_project.py``.
   the map alone.
 - ``project_nuscenes.png``: the real nuScenes LIDAR_TOP sweep projected to CAM_FRONT at the
   radar papers' 800x450 resolution, then their 350x800 crop (top 100 rows removed).
+- ``project_occluded.png``: ``--filter-occluded`` on the real KITTI frame 000001: the kept
+  points coloured by depth over the image, the removed ones in magenta (3x3).
 - ``project_radar.png``: the 5 merged front-radar sweeps (nuScenes radar PCD) of
   ``sample_data/synthetic`` frame 000000 with its JSON calibration.
 
@@ -111,9 +113,26 @@ def radar(tmp: Path) -> None:
     )
 
 
+def occluded(tmp: Path) -> None:
+    src = SAMPLE / "kitti"
+    sparsetools("project", "--kitti-object", src, "-o", tmp / "plain")
+    sparsetools("project", "--kitti-object", src, "-o", tmp / "filtered", "--filter-occluded")
+    plain = read_depth_png(tmp / "plain" / "000001.png")
+    kept = read_depth_png(tmp / "filtered" / "000001.png")
+    removed = (plain > 0) & (kept == 0)
+    image = read_image(src / "image_2" / "000001.png")
+    overlay = overlay_depth(image, kept, max_depth=80.0, dilate=1)
+    grown = cv2.dilate(removed.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    overlay[grown] = (255, 0, 255)
+    save("project_occluded.png",
+         cv2.resize(overlay, None, fx=0.75, fy=0.75, interpolation=cv2.INTER_AREA))  # fmt: skip
+    print(f"removed {int(removed.sum())} of {int((plain > 0).sum())} pixels")
+
+
 if __name__ == "__main__":
     with tempfile.TemporaryDirectory() as d:
         kitti(Path(d))
+        occluded(Path(d))
         radar(Path(d))
         if REAL.is_dir():
             nuscenes(Path(d))
