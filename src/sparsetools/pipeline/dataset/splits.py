@@ -329,13 +329,14 @@ class SplitListReport:
         return {**self.counts(), f"absent_{self.noun}": groups}
 
     def text(self, label: str) -> str:
-        """``eigen test: 697 listed, 3 present, 694 absent: drives A (25), B (22 of 25), C
-        (25) and 25 more``."""
+        """``eigen test: 697 listed, 3 present, 694 absent: drives A (22 of 25), B (25), C
+        (25) and 25 more``: a drive's absent lines (of its lines, when some are present); a
+        scene's one line is its name only."""
         line = f"{label}: {self.listed} listed, {self.present} present, {self.absent} absent"
         if self.other_camera:
             line += f", {self.other_camera} of the other camera"
         if self.absent_groups:
-            shown = [f"{g} ({a})" if a == n else f"{g} ({a} of {n})"
+            shown = [g if n == 1 else f"{g} ({a})" if a == n else f"{g} ({a} of {n})"
                      for g, (a, n) in list(self.absent_groups.items())[:SHOWN_GROUPS]]  # fmt: skip
             rest = len(self.absent_groups) - len(shown)
             line += f": {self.noun} {', '.join(shown)}" + (f" and {rest} more" if rest else "")
@@ -386,8 +387,12 @@ class SplitListsReport:
             r.text(f"{self.name} {r.split}" if self.name else f"{r.split} ({Path(r.source).name})")
             for r in self.lists
         ]
-        which = f"of the {self.name} lists" if self.name else "of the split files"
-        out.append(f"{self.not_listed} frame(s) of the inputs are in none {which}: left out")
+        which = f"the {self.name} lists" if self.name else "the split files"
+        out.append(
+            f"{self.not_listed} frame(s) of the inputs are in none of {which}: left out"
+            if self.not_listed
+            else f"every frame of the inputs is in one of {which}"
+        )
         return out
 
 
