@@ -137,7 +137,7 @@ class DatasetInfo:
                     f"{s.samples} sample(s), {s.sequences} sequence(s), {s.with_gt} with gt",
                 )
             )
-        if self.split_method:
+        if isinstance(self.split_method, dict):
             lines.append(("split by", _split_text(self.split_method)))
         lines += [
             ("image sizes", ", ".join(f"{k} ({v})" for k, v in self.image_sizes.items())),
@@ -244,6 +244,7 @@ def dataset_info(path: str | os.PathLike) -> DatasetInfo:
     count("manifest", MANIFEST_NAME)
     for kind, size in _unlisted_bytes(root, counted).items():
         bytes_by_kind[kind] += size
+    split = info.get("split")
     return DatasetInfo(
         dataset=str(root),
         schema_version=info.get("schema_version"),
@@ -261,8 +262,10 @@ def dataset_info(path: str | os.PathLike) -> DatasetInfo:
         bytes=dict(bytes_by_kind),
         total_bytes=int(sum(bytes_by_kind.values())),
         missing_files=missing,
-        split_method=info.get("split"),
-        official_split=(info.get("split") or {}).get("name"),
+        split_method=split,
+        official_split=str(split["name"])
+        if isinstance(split, dict) and split.get("method") == "official" and "name" in split
+        else None,
     )
 
 
