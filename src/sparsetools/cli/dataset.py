@@ -306,11 +306,8 @@ def nuscenes(root, out_dir, nuscenes_version, camera, sensor, sweeps, resize, cr
     Per sample: the camera image, resized and cropped with its intrinsics adjusted, the
     sensor's sweeps projected into it (devkit filters; radar with its own ego pose), optionally
     expanded by the joint bilateral filter, and LIDAR_TOP projected as ground truth. Samples
-    are frames of their scene: splits go by scene.
-
-    \b
-    Splits go by scene: fractions over scenes (--splits), the official scene lists
-    (--split official, --split mini) or your own (--split-file).
+    are frames of their scene, and splits go by scene: fractions over scenes (--splits), the
+    official scene lists (--split official, --split mini) or your own (--split-file).
 
     \b
     Example (the radar paper's setting: 800x450, top 100 rows cut):
@@ -338,7 +335,9 @@ def nuscenes(root, out_dir, nuscenes_version, camera, sensor, sweeps, resize, cr
     help="Beams of the input (the full scan is the ground truth); 64: the full scan.",
 )  # fmt: skip
 @splits_option(dataset="kitti")
-@_split_file_option(help="Eigen / Eigen-Zhou split lists (repeat per split).")
+@_split_file_option(
+    help="Your own split lists, Eigen form (<date>/<drive> <frame> <l|r>); repeat per split."
+)
 @seed_option(help="Seed of the split assignment.")
 @batch_options
 def kitti_raw(root, out_dir, beams, official_split, splits, split_files, seed, batch, as_json):
