@@ -233,7 +233,8 @@ def test_build_split_is_the_old_spelling_of_splits(inputs, tmp_path):
     assert new.exit_code == 0 and old.exit_code == 0, old.output
     assert _deprecation_lines(new.stderr) == []
     assert _deprecation_lines(old.stderr) == [
-        "WARNING: deprecated: --split is now --splits (the old spelling goes in 0.4)"
+        "WARNING: deprecated: --split 0.5,0.5 is now --splits 0.5,0.5 (--split NAME picks an "
+        "official split; its fraction spelling goes in 0.4)"
     ]
     drop = ("seconds", "stage_seconds", "output")
     summary = {k: v for k, v in json.loads(old.stdout).items() if k not in drop}

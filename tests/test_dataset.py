@@ -328,7 +328,7 @@ def test_build_settings_are_validated_once_and_recorded_as_before():
     }
     with pytest.raises(ParameterError, match="--sparse-format"):
         BuildSettings(sparse_format="tiff")
-    with pytest.raises(ParameterError, match="not both"):
+    with pytest.raises(ParameterError, match="give one of .*, not two"):
         BuildSettings.with_splits("0.5,0.5", ["a.txt"])
     with pytest.raises(ParameterError, match="sum to 1"):
         BuildSettings(split={"train": 0.5})
@@ -351,7 +351,9 @@ def test_info_and_verify_are_records_with_their_own_text(inputs, tmp_path):
         "dataset", "schema_version", "created_by", "samples", "sequences", "splits",
         "image_sizes", "sources", "with_gt", "with_confidence", "with_intrinsics", "n_sparse",
         "density_percent", "bytes", "total_bytes", "missing_files", "split_method",
+        "official_split",
     ]  # fmt: skip
+    assert d["official_split"] is None  # fractions; an official split records its name
     assert d["splits"]["train"] == {"samples": 3, "sequences": 1, "with_gt": 3}
     assert d["image_sizes"] == {f"{W}x{H}": 9} and d["schema_version"] == 2
     assert set(d["n_sparse"]) == {"min", "median", "mean", "max"}
@@ -799,7 +801,7 @@ def test_bad_inputs(inputs, tmp_path):
         )
     with pytest.raises(ParameterError, match="--sparse-format"):
         build(inputs, tmp_path / "x", sparse_format="tiff")
-    with pytest.raises(ParameterError, match="not both"):
+    with pytest.raises(ParameterError, match="give one of .*, not two"):
         build(inputs, tmp_path / "x", split="0.5,0.5", split_files=["a"])
     busy = tmp_path / "busy"
     busy.mkdir()

@@ -17,7 +17,9 @@ from .options import (
     emit_summary,
     gt_option,
     json_option,
+    named_split,
     nuscenes_version_option,
+    one_split_choice,
     output_dir_option,
     quiet_debug_options,
     resize_option,
@@ -37,19 +39,39 @@ def _splits_callback(ctx, param, value):
     return checked(parse_split_fractions)(ctx, param, value)
 
 
-def splits_option(command: str, *, tree: bool = False):
-    """``--splits``: split fractions over sequences (``tree``: or the input tree's split),
-    passed as ``splits``; and its 0.2 spelling ``--split`` (now a split's name everywhere)."""
+#: The official splits each route takes (``--split NAME``), as the help names them; the
+#: catalogue is :mod:`sparsetools.pipeline.dataset.official_splits` (a test keeps them equal).
+SPLIT_NAMES = {
+    "kitti": ("eigen", "eigen_full", "eigen_benchmark", "odom"),
+    "nuscenes": ("official", "mini"),
+}
+_SPLIT_HELP = {
+    "kitti": "eigen (Eigen-Zhou train/val, Eigen test), eigen_full, eigen_benchmark, odom",
+    "nuscenes": "official (train/val/test scenes), mini (mini_train/mini_val)",
+}
+
+
+def splits_option(*, dataset: str, tree: bool = False):
+    """The split of a built dataset, one choice of three: ``--split NAME`` (an official split
+    of ``dataset``: ``kitti`` or ``nuscenes``), ``--splits`` (fractions over sequences;
+    ``tree``: or the input tree's split) and ``--split-file`` (lists), passed as
+    ``official_split``, ``splits`` and ``split_files``. ``--split FRACTIONS``, 0.2's spelling
+    of ``--splits``, still works with a warning."""
     metavar = "TRAIN,VAL,TEST|tree" if tree else "TRAIN,VAL,TEST"
     text = "Split fractions over sequences [default: 0.8,0.1,0.1]; or name=fraction,..."
     if tree:
         text += "; or 'tree': the split of a KITTI depth-completion tree (train / val)."
+    unit = "scene" if dataset == "nuscenes" else "frame"
+    official = (f"An official split list set shipped with sparsetools: {_SPLIT_HELP[dataset]}; "
+                f"each {unit} goes to the split whose list names it, unlisted ones are left "
+                "out (docs/dataset.md).")  # fmt: skip
 
     def deco(f):
-        f = deprecated("--split", "--splits", command=command, dest="splits", metavar=metavar)(f)
-        return click.option(
+        f = one_split_choice(f)
+        f = click.option(
             "--splits", "splits", callback=_splits_callback, metavar=metavar, help=text
         )(f)
+        return split_option("official_split", callback=named_split(dataset), help=official)(f)
 
     return deco
 
@@ -155,10 +177,10 @@ def _split_file_option(*, help: str):
     help="Sequence of a frame: its folder, or a regex on its relative path "
     "(group 'sequence' or group 1).",
 )
-@splits_option("dataset build", tree=True)
+@splits_option(dataset="kitti", tree=True)
 @_split_file_option(
-    help="Split list (KITTI Eigen form or one id per line); repeat per split. The split "
-    "name comes from NAME= or the file name (train/val/test)."
+    help="Split list (KITTI Eigen form, or one id or sequence per line); repeat per split. "
+    "The split name comes from NAME= or the file name (train/val/test)."
 )
 @seed_option(help="Seed of the split assignment.")
 @click.option(
@@ -197,6 +219,7 @@ def build(
     confidence,
     calib,
     sequence_from,
+    official_split,
     splits,
     split_files,
     seed,
@@ -221,16 +244,15 @@ def build(
           -o out/depth4
       sparsetools dataset build -o out/ds4 --rgb out/scene/image_2 --sparse out/depth4 \\
           --gt out/scene/depth_gt --calib out/depth4/calib --source lidar-4beam
+      sparsetools dataset build -o out/kitti --rgb raw --sparse velodyne_raw --split eigen
       sparsetools dataset build -o out/kitti --rgb raw --sparse velodyne_raw \\
-          --split-file train=eigen_train_files.txt --split-file test=eigen_test_files.txt
+          --split-file train=my_train_files.txt --split-file test=my_test_files.txt
     """
     from ..pipeline.core import run_job
     from ..pipeline.dataset import BuildSettings, DatasetJob, find_build_inputs
 
-    if splits is not None and split_files:
-        raise click.UsageError("give --splits or --split-file, not both")
     settings = BuildSettings.with_splits(
-        splits, split_files, sequence_from=sequence_from, seed=seed,
+        splits, split_files, official_split=official_split, sequence_from=sequence_from, seed=seed,
         sparse_format=sparse_format, link=not copy, source=source, params=params,
     )  # fmt: skip
     found = find_build_inputs(
@@ -242,9 +264,10 @@ def build(
 
 
 def _summary(summary, as_json, out_dir) -> None:
-    """A build's summary; its stage timings (``stage_seconds``) with ``--json`` only."""
+    """A build's summary; its stage timings (``stage_seconds``) and what each split list
+    matched, drive by drive (``split_lists``), with ``--json`` only."""
     emit_summary(summary, as_json=as_json, title=f"dataset written to {out_dir}",
-                 details=("stage_seconds",))  # fmt: skip
+                 details=("stage_seconds", "split_lists"))  # fmt: skip
 
 
 @dataset.command("nuscenes")
@@ -270,22 +293,26 @@ def _summary(summary, as_json, out_dir) -> None:
     "--night", type=click.Choice(["any", "only", "exclude"]), default="any", show_default=True,
     help="Scenes by their description: all, only night ones, or only day ones.",
 )  # fmt: skip
-@splits_option("dataset nuscenes")
+@splits_option(dataset="nuscenes")
+@_split_file_option(help="Scene list (one scene name per line); repeat per split. The split "
+                    "name comes from NAME= or the file name (train/val/test).")  # fmt: skip
 @seed_option(help="Seed of the split assignment.")
 @batch_options
 def nuscenes(root, out_dir, nuscenes_version, camera, sensor, sweeps, resize, crop, gt_sensor,
-             gt_sweeps, jbf, scenes, night, splits, seed, batch, as_json):  # fmt: skip
+             gt_sweeps, jbf, scenes, night, official_split, splits, split_files, seed, batch,
+             as_json):  # fmt: skip
     """nuScenes samples to a dataset: camera image, radar (or LiDAR) input, LiDAR truth.
 
     Per sample: the camera image, resized and cropped with its intrinsics adjusted, the
     sensor's sweeps projected into it (devkit filters; radar with its own ego pose), optionally
     expanded by the joint bilateral filter, and LIDAR_TOP projected as ground truth. Samples
-    are frames of their scene: splits go by scene.
+    are frames of their scene, and splits go by scene: fractions over scenes (--splits), the
+    official scene lists (--split official, --split mini) or your own (--split-file).
 
     \b
     Example (the radar paper's setting: 800x450, top 100 rows cut):
       sparsetools dataset nuscenes /data/nuscenes -o out/nus_radar --sweeps 5 \\
-          --resize 0.5 --crop 800x350+0+100 --jbf
+          --resize 0.5 --crop 800x350+0+100 --jbf --split official
     """
     from ..pipeline.dataset.roots import build_nuscenes_dataset
 
@@ -294,7 +321,8 @@ def nuscenes(root, out_dir, nuscenes_version, camera, sensor, sweeps, resize, cr
         resize=resize, crop=crop, gt_sensor=None if gt_sensor.lower() == "none" else gt_sensor,
         gt_sweeps=gt_sweeps, jbf=jbf,
         scenes=tuple(s.strip() for s in scenes.split(",")) if scenes else None,
-        night=night, split=splits, seed=seed, batch=batch,
+        night=night, split=splits, split_files=split_files or None,
+        official_split=official_split, seed=seed, batch=batch,
     )  # fmt: skip
     _summary(summary, as_json, out_dir)
 
@@ -306,29 +334,32 @@ def nuscenes(root, out_dir, nuscenes_version, camera, sensor, sweeps, resize, cr
     "--beams", type=click.IntRange(min=1, max=64), default=4, show_default=True,
     help="Beams of the input (the full scan is the ground truth); 64: the full scan.",
 )  # fmt: skip
-@splits_option("dataset kitti-raw")
-@_split_file_option(help="Eigen / Eigen-Zhou split lists (repeat per split).")
+@splits_option(dataset="kitti")
+@_split_file_option(
+    help="Your own split lists, Eigen form (<date>/<drive> <frame> <l|r>); repeat per split."
+)
 @seed_option(help="Seed of the split assignment.")
 @batch_options
-def kitti_raw(root, out_dir, beams, splits, split_files, seed, batch, as_json):
+def kitti_raw(root, out_dir, beams, official_split, splits, split_files, seed, batch, as_json):
     """KITTI raw drives to a dataset: image, N-beam projected LiDAR, full-scan ground truth.
 
     ROOT is a drive, a date folder (all its drives) or a root of dates. Frames are keyed by
-    drive, so frame names that repeat across drives stay distinct; splits go by drive, or by
-    Eigen split files.
+    drive, so frame names that repeat across drives stay distinct; splits go by drive, by the
+    official lists (--split eigen: Eigen-Zhou train / val, Eigen test) or by your own lists
+    (--split-file). The summary reports the listed frames the tree lacks, drive by drive.
 
     \b
-    Example:
+    Examples:
+      sparsetools dataset kitti-raw /data/kitti_raw -o out/kitti4 --beams 4 --split eigen
       sparsetools dataset kitti-raw /data/kitti_raw -o out/kitti4 --beams 4 \\
-          --split-file train=eigen_train_files.txt --split-file test=eigen_test_files.txt
+          --split-file train=my_train_files.txt --split-file test=my_test_files.txt
     """
     from ..pipeline.dataset.roots import build_kitti_raw_dataset
 
-    if splits is not None and split_files:
-        raise click.UsageError("give --splits or --split-file, not both")
     summary = build_kitti_raw_dataset(
         root, out_dir, beams=None if beams == 64 else beams, split=splits,
-        split_files=split_files or None, seed=seed, batch=batch,
+        split_files=split_files or None, official_split=official_split, seed=seed,
+        batch=batch,
     )  # fmt: skip
     _summary(summary, as_json, out_dir)
 

@@ -15,10 +15,12 @@ import click
 
 from .deprecation import DEPRECATED, deprecated, warn_deprecated
 from .parsing import (
+    OldSplitFractions,
     build,
     checked,
     crop_box,
     int_list,
+    named_split,
     non_negative,
     odd,
     pair,
@@ -43,8 +45,10 @@ __all__ = [
     "json_option",
     "max_depth_option",
     "min_depth_option",
+    "named_split",
     "non_negative",
     "odd",
+    "one_split_choice",
     "output_dir_option",
     "overwrite_option",
     "pair",
@@ -326,16 +330,50 @@ def root_flag(name: str) -> bool:
     return bool(obj and obj.get(name))
 
 
-def split_option(dest: str = "split", *, default: str | None = None, help: str):
-    """``--split NAME``: one split of a dataset (``train``, ``val``, ``test``...)."""
+def split_option(dest: str = "split", *, default: str | None = None, help: str, callback=None):
+    """``--split NAME``: a split by its name: one split of a dataset (``train``, ``val``,
+    ``test``...) where a dataset is read; the official split (``eigen``, ``official``...) that
+    makes one where a dataset is built (``callback``: :func:`.parsing.named_split`)."""
 
     def deco(fn):
         return click.option(
             "--split", dest, default=default, show_default=default is not None, metavar="NAME",
-            help=help,
+            callback=callback, help=help,
         )(fn)  # fmt: skip
 
     return deco
+
+
+def one_split_choice(f):
+    """``--split NAME``, ``--splits FRACTIONS`` and ``--split-file``, passed as
+    ``official_split``, ``splits`` and ``split_files``, are one choice: giving two is a usage
+    error. ``--split FRACTIONS`` (:class:`.parsing.OldSplitFractions`) is the 0.2 spelling of
+    ``--splits``: it works, with one deprecation warning."""
+    options = (
+        ("--split", "official_split"),
+        ("--splits", "splits"),
+        ("--split-file", "split_files"),
+    )
+
+    @functools.wraps(f)
+    def command(*args, **kw):
+        old = kw.get("official_split")
+        if isinstance(old, OldSplitFractions) and kw.get("splits") is not None:
+            raise click.UsageError(f"--split {old.text} is the old spelling of --splits: give "
+                                   "--splits only")  # fmt: skip
+        given = [opt for opt, key in options if kw.get(key)]
+        if len(given) > 1:
+            raise click.UsageError(f"give one of --split, --splits and --split-file, not "
+                                   f"{' and '.join(given)}")  # fmt: skip
+        if isinstance(old, OldSplitFractions):
+            warn_deprecated(
+                f"--split {old.text} is now --splits {old.text} (--split NAME picks an official "
+                "split; its fraction spelling goes in 0.4)"
+            )
+            kw["official_split"], kw["splits"] = None, old.value
+        return f(*args, **kw)
+
+    return command
 
 
 def threads_option(f=None, *, default: int | None = 1, help: str):

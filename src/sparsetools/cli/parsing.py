@@ -7,6 +7,8 @@ the option); :func:`build` does the same for a settings record made from options
 
 from __future__ import annotations
 
+from typing import Any, NamedTuple
+
 import click
 
 from ..errors import ParameterError
@@ -17,6 +19,7 @@ __all__ = [
     "checked",
     "crop_box",
     "int_list",
+    "named_split",
     "non_negative",
     "odd",
     "pair",
@@ -120,3 +123,40 @@ def int_list(ctx, param, value):
     if value is None or value == ():
         return None
     return checked(lambda v: parse_int_list(v, param.name))(ctx, param, value)
+
+
+class OldSplitFractions(NamedTuple):
+    """``--split 0.8,0.1,0.1``: sparsetools 0.2's spelling of ``--splits`` (``value``: what
+    ``--splits`` reads from ``text``); the command warns and uses it as ``--splits``."""
+
+    value: Any
+    text: str
+
+
+def named_split(dataset: str, *, fractions: str = "splits"):
+    """Callback factory: ``--split NAME``, a split shipped for ``dataset`` (``kitti``,
+    ``nuscenes``). A text with ``,`` or ``=`` (``0.8,0.1,0.1``, ``train=0.9,val=0.1``), or one
+    that the command's option ``fractions`` reads otherwise (``tree``), is 0.2's spelling of
+    that option: read as it reads it, returned as :class:`OldSplitFractions`. Any other text is a
+    usage error listing the names."""
+
+    def parse(ctx, param, value):
+        from ..pipeline.dataset.official_splits import official_split_names
+
+        names = official_split_names(dataset)
+        if value is None or value in names:
+            return value
+        target = next((p for p in ctx.command.params if p.name == fractions), None)
+        if target is not None:
+            try:
+                return OldSplitFractions(target.process_value(ctx, value), value)
+            except click.BadParameter as exc:
+                if "," in value or "=" in value:  # fractions, badly written
+                    exc.param_hint = "'--split'"
+                    raise
+        raise click.BadParameter(
+            f"unknown split {value!r}: the official splits are {', '.join(names)} "
+            "(split fractions go in --splits)"
+        )
+
+    return parse

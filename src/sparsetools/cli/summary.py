@@ -1,7 +1,8 @@
 """How a command prints its summary: ``key  value`` lines, or JSON with ``--json``.
 
 The text summary has a fixed number of lines whatever the number of frames: one line per
-total (a nested group of totals, such as ``removed``, on one line). What grows with the batch
+total (a nested group of totals, such as ``removed``, on one line; a list of lines, such as
+the report of each split list, one line per item). What grows with the batch
 (per-frame tables) or describes the run's inner workings (stage timings) is named in
 ``details`` and printed with ``--json`` only. ``-q`` changes stderr only, never stdout.
 """
@@ -69,6 +70,10 @@ def _text_rows(summary: dict, *, details: Iterable[str] = ()) -> list[tuple[str,
             v = {kk: vv for kk, vv in v.items() if kk not in drop}
             if not v:
                 continue
+        if isinstance(v, (list, tuple)) and v and all(isinstance(x, str) for x in v):
+            rows.append((str(k).replace("_", " "), v[0]))
+            rows.extend(("", x) for x in v[1:])
+            continue
         rows.append((str(k).replace("_", " "), _inline(v)))
     return rows
 

@@ -1,6 +1,7 @@
 """``dataset build / info / verify``: the batch job behind the commands, one module per concern.
 
 - :mod:`.splits`: split fractions, split files, sequence names, assignment by sequence;
+- :mod:`.official_splits`: the split lists shipped with sparsetools (``--split eigen``);
 - :mod:`.settings`: what the samples depend on (:class:`BuildSettings`);
 - :mod:`.build`: finding and matching the inputs, the job (:class:`DatasetJob`);
 - :mod:`.staging`: one frame's work and its staging record;
@@ -10,9 +11,12 @@
 
 from .build import BuildInputs, DatasetJob, build_dataset, find_build_inputs
 from .inspect import DatasetInfo, VerifyReport, dataset_info, verify_dataset
+from .official_splits import OFFICIAL_SPLITS, official_split_lists, official_split_names
 from .settings import SPARSE_FORMATS, BuildSettings
 from .splits import (
     DEFAULT_SPLIT,
+    SplitList,
+    SplitListsReport,
     assign_splits,
     match_split_lines,
     parse_split_fractions,
@@ -30,6 +34,7 @@ from .staging import (
 
 __all__ = [
     "DEFAULT_SPLIT",
+    "OFFICIAL_SPLITS",
     "SPARSE_FORMATS",
     "STAGING",
     "BuildInputs",
@@ -38,12 +43,16 @@ __all__ = [
     "DatasetFrameStats",
     "DatasetInfo",
     "DatasetJob",
+    "SplitList",
+    "SplitListsReport",
     "VerifyReport",
     "assign_splits",
     "build_dataset",
     "dataset_info",
     "find_build_inputs",
     "match_split_lines",
+    "official_split_lists",
+    "official_split_names",
     "parse_split_fractions",
     "read_record",
     "read_split_file",

@@ -18,7 +18,7 @@ import logging
 import os
 import time
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from ..._version import __version__
@@ -33,11 +33,9 @@ from ..batch import Batch, RunSummary
 from ..core import BatchJob, FrameTask, run_job
 from ..provenance import option_names, settings_dict
 from .merge import merge_staged
+from .official_splits import official_split_lists
 from .settings import SPARSE_FORMATS, BuildSettings
-from .splits import (
-    sequence_resolver,
-    split_file_assignments,
-)
+from .splits import SplitListsReport, sequence_resolver, split_file_assignments
 from .staging import (
     STAGES,
     STAGING,
@@ -186,8 +184,9 @@ class BuildInputs:
     unmatched : dict of str -> int
         Frames left out, by reason (``rgb_without_sparse``, ``without_gt``,
         ``not_in_split_files``, ...).
-    split_lists : dict, optional
-        With split files: lines ``listed`` in them and lines matching no frame (``missing``).
+    split_lists : SplitListsReport, optional
+        With split files or an official split: what each list matched, and the frames in no
+        list (left out).
     seconds : float
         Time spent indexing and matching.
     """
@@ -195,7 +194,7 @@ class BuildInputs:
     frames: list[DatasetFrameInput]
     roots: tuple[Path, ...]
     unmatched: dict[str, int]
-    split_lists: dict[str, int] | None = None
+    split_lists: SplitListsReport | None = None
     seconds: float = 0.0
 
 
@@ -232,14 +231,28 @@ def find_build_inputs(
     unmatched = dict(inputs.unmatched)
     split_of: dict[FrameKey, str] = {}
     split_lists = None
-    if settings.split_files:
-        assignment, split_lists = split_file_assignments(
-            settings.split_files, {str(k): sequence[k] for k in keys}
+    if settings.split_files or settings.official_split:
+        lists = (
+            official_split_lists(settings.official_split)
+            if settings.official_split
+            else settings.split_files
         )
-        unmatched["not_in_split_files"] = sum(1 for k in keys if str(k) not in assignment)
+        # A frame's camera is the image_0N of its key, else the one the build reads.
+        assignment, split_lists = split_file_assignments(
+            lists, {str(k): sequence[k] for k in keys}, camera=camera,
+            name=settings.official_split,
+        )  # fmt: skip
+        not_listed = sum(1 for k in keys if str(k) not in assignment)
+        unmatched["not_in_split_files"] = not_listed
+        split_lists = replace(split_lists, not_listed=not_listed)
         keys = [k for k in keys if str(k) in assignment]
         if not keys:
-            raise ParameterError("no frame is listed in the split file(s)")
+            which = f"the {settings.official_split} lists" if settings.official_split else (
+                "the split file(s)")  # fmt: skip
+            raise ParameterError(
+                f"no frame is listed in {which}: {split_lists.listed} line(s), none matched "
+                "a frame of the inputs"
+            )
         split_of = {k: assignment[str(k)] for k in keys}
     elif settings.split_from_tree:
         if not inputs.splits:
@@ -329,7 +342,7 @@ class DatasetJob(BatchJob[DatasetFrameInput]):
 
     settings: BuildSettings
     unmatched: Mapping[str, int] = field(default_factory=dict)
-    split_lists: Mapping[str, int] | None = None
+    split_lists: SplitListsReport | None = None
     plan_seconds: float = 0.0
     frames_per_part: int = 1000
     param_options: Mapping[str, str] = field(default_factory=dict)
@@ -360,6 +373,8 @@ class DatasetJob(BatchJob[DatasetFrameInput]):
         # Split files are recorded as sparsetools 0.2 wrote them (str of each item), so that
         # its datasets resume.
         record = settings_dict(self.settings)
+        if self.settings.official_split is None:  # as 0.2 / 0.3 recorded it
+            del record["official_split"]
         if self.settings.split_files:
             record["split_files"] = [str(f) for f in self.settings.split_files]
         return record
@@ -402,8 +417,8 @@ class DatasetJob(BatchJob[DatasetFrameInput]):
         t0 = time.perf_counter()
         s = self.settings
         split = s.split_method()
-        if s.split_files:
-            split.update(self.split_lists or {})
+        if self.split_lists is not None:
+            split.update(self.split_lists.manifest_dict())
         info = {"created_by": f"sparsetools {__version__}", "sparse_format": s.sparse_format,
                 "split": split}  # fmt: skip
         # split files and the tree give each frame its split; fractions split by sequence
@@ -421,9 +436,14 @@ class DatasetJob(BatchJob[DatasetFrameInput]):
         stages = {"t_plan": round(self.plan_seconds, 4)}
         stages.update({k: round(sum(getattr(x, k) for x in stats), 4) for k in STAGES})
         stages["t_finalize"] = round(time.perf_counter() - t0, 4)
+        lists = {}
+        if self.split_lists is not None:
+            lists = {"split_report": self.split_lists.lines(),
+                     "split_lists": self.split_lists.to_dict()}  # fmt: skip
         return {
             **merged,
             "unmatched": dict(self.unmatched),
+            **lists,
             "linked": sum(x.linked for x in stats),
             "stage_seconds": stages,
             "output": str(out_dir),
@@ -441,6 +461,7 @@ def build_dataset(
     sequence_from: str = "parent",
     split: str | Mapping[str, float] | None = None,
     split_files: Iterable[str | tuple[str, str]] | None = None,
+    official_split: str | None = None,
     seed: int = 0,
     sparse_format: str = "both",
     link: bool = False,
@@ -488,6 +509,10 @@ def build_dataset(
     split_files : iterable, optional
         Split lists (``NAME=PATH`` or a path whose name contains train/val/test); frames
         not listed are left out. Exclusive with ``split``.
+    official_split : str, optional
+        A split list set shipped with sparsetools (``eigen``, ``eigen_full``,
+        ``eigen_benchmark``, ``odom``; ``official``, ``mini`` for nuScenes scenes): as
+        ``split_files``, with the shipped lists. Exclusive with ``split`` and ``split_files``.
     seed : int
         Split seed.
     sparse_format : {"png", "parquet", "both"}
@@ -523,7 +548,8 @@ def build_dataset(
     """
     batch = batch or Batch()
     settings = BuildSettings.with_splits(
-        split, split_files, sparse_format=sparse_format, sparse_name=sparse_name,
+        split, split_files, official_split=official_split, sparse_format=sparse_format,
+        sparse_name=sparse_name,
         gt_name=gt_name, link=link, source=source, params=params, sequence_from=sequence_from,
         seed=seed,
     )  # fmt: skip

@@ -94,6 +94,9 @@ class DatasetInfo:
         Files the manifest names that are gone.
     split_method : dict, optional
         How the splits were assigned (the manifest's metadata).
+    official_split : str, optional
+        The official split whose lists made the splits (``eigen``, ``official``...); None for
+        other splits and for datasets made before sparsetools recorded it.
     """
 
     dataset: str
@@ -113,6 +116,7 @@ class DatasetInfo:
     total_bytes: int
     missing_files: int
     split_method: dict | None
+    official_split: str | None = None
 
     def to_dict(self) -> dict:
         """The report as JSON values (``dataset info --json``)."""
@@ -133,6 +137,8 @@ class DatasetInfo:
                     f"{s.samples} sample(s), {s.sequences} sequence(s), {s.with_gt} with gt",
                 )
             )
+        if isinstance(self.split_method, dict):
+            lines.append(("split by", _split_text(self.split_method)))
         lines += [
             ("image sizes", ", ".join(f"{k} ({v})" for k, v in self.image_sizes.items())),
             ("sources", ", ".join(f"{k} ({v})" for k, v in self.sources.items())),
@@ -159,6 +165,26 @@ class DatasetInfo:
         return "\n".join(f"{k:<{width}}  {v}" for k, v in lines)
 
     __str__ = format
+
+
+def _split_text(method: dict) -> str:
+    """How the splits were made, in words (``official split eigen (train kitti/...)``); the
+    manifest's record is read as text, whatever it holds."""
+    kind = method.get("method")
+    if kind == "official":
+        files = method.get("files")
+        files = ", ".join(f"{k} {v}" for k, v in files.items()) if isinstance(files, dict) else ""
+        return f"official split {method.get('name')} ({files})"
+    if kind == "sequence":
+        fractions = method.get("fractions")
+        if isinstance(fractions, dict):
+            fractions = ", ".join(f"{k} {v}" for k, v in fractions.items())
+        return f"sequence ({fractions}; seed {method.get('seed')})"
+    if kind == "split-file":
+        return (
+            f"split files ({method.get('listed')} lines, {method.get('missing')} matching no frame)"
+        )
+    return str(kind)
 
 
 def _human(n: float) -> str:
@@ -218,6 +244,7 @@ def dataset_info(path: str | os.PathLike) -> DatasetInfo:
     count("manifest", MANIFEST_NAME)
     for kind, size in _unlisted_bytes(root, counted).items():
         bytes_by_kind[kind] += size
+    split = info.get("split")
     return DatasetInfo(
         dataset=str(root),
         schema_version=info.get("schema_version"),
@@ -235,7 +262,10 @@ def dataset_info(path: str | os.PathLike) -> DatasetInfo:
         bytes=dict(bytes_by_kind),
         total_bytes=int(sum(bytes_by_kind.values())),
         missing_files=missing,
-        split_method=info.get("split"),
+        split_method=split,
+        official_split=str(split["name"])
+        if isinstance(split, dict) and split.get("method") == "official" and "name" in split
+        else None,
     )
 
 

@@ -19,6 +19,8 @@ from ...errors import FormatError, ParameterError, UsageError
 from ..batch import Batch, RunSummary
 from ..core import run_job
 from .build import SOURCES_DIR, BuildSettings, DatasetJob, build_dataset, find_build_inputs
+from .official_splits import check_scene_list
+from .splits import split_list_of
 
 __all__ = [
     "build_kitti_dc_dataset",
@@ -61,6 +63,8 @@ def build_nuscenes_dataset(
     scenes: tuple[str, ...] | None = None,
     night: str = "any",
     split: str | None = None,
+    split_files=None,
+    official_split: str | None = None,
     seed: int = 0,
     sparse_format: str = "both",
     batch: Batch | None = None,
@@ -68,7 +72,8 @@ def build_nuscenes_dataset(
     """nuScenes samples -> dataset: one camera's image (resized / cropped, with its adjusted
     intrinsics), the sparse input from ``sensor`` (radar: ``sweeps`` merged, devkit filters;
     optionally expanded by the JBF, whose confidence map is stored too), ground truth from
-    ``gt_sensor`` (``None``: none), splits by scene.
+    ``gt_sensor`` (``None``: none), splits by scene: fractions (``split``), scene lists
+    (``split_files``, one scene name per line) or an ``official_split`` (``official``, ``mini``).
 
     The radar paper's setting: ``camera="CAM_FRONT", resize=0.5, crop=(100, 0, 350, 800)``
     (``--crop 800x350+0+100``: 1600x900 -> 800x450, the top 100 rows cut).
@@ -88,6 +93,8 @@ def build_nuscenes_dataset(
     from ..project import ProjectJob, ProjectSettings
 
     batch = batch or Batch()
+    for item in split_files or ():  # scene lists: refused before any work
+        check_scene_list(split_list_of(item))
     if jbf and not sensor.upper().startswith("RADAR"):
         raise ParameterError("--jbf expands radar: give a RADAR_* --sensor", param="jbf")
     if gt_sensor is not None and sensor.upper() == gt_sensor.upper():
@@ -134,7 +141,8 @@ def build_nuscenes_dataset(
         sparse = confidence = _stage(out, "jbf")
         source = f"{sensor.lower()}-jbf"
     settings = BuildSettings.with_splits(
-        split, None, sparse_format=sparse_format, source=source, seed=seed,
+        split, split_files, official_split=official_split, sparse_format=sparse_format,
+        source=source, seed=seed,
         params={
             "route": "nuscenes", "version": version, "camera": camera, "sensor": sensor,
             "sweeps": sweeps, "resize": resize, "crop": list(crop) if crop else None,
@@ -180,13 +188,15 @@ def build_kitti_raw_dataset(
     camera: int = 2,
     split: str | None = None,
     split_files=None,
+    official_split: str | None = None,
     seed: int = 0,
     sparse_format: str = "both",
     batch: Batch | None = None,
 ) -> RunSummary:
     """KITTI raw drives (a drive, a date folder or a root of dates) -> dataset: the camera
     image, the projected scan kept at ``beams`` beams as input (``None``: the full scan), the
-    full-scan projection as ground truth; splits by drive, or Eigen / Eigen-Zhou split files."""
+    full-scan projection as ground truth; splits by drive, by split files, or by an
+    ``official_split`` (``eigen``, ``eigen_full``, ``eigen_benchmark``, ``odom``)."""
     from ...io.sources import Frame, cloud_frames, is_kitti_raw, kitti_raw_index
     from ..beams import BeamsJob, BeamsSettings
     from ..project import ProjectJob, ProjectSettings
@@ -220,6 +230,7 @@ def build_kitti_raw_dataset(
         gt=_stage(out, "gt"),
         split=split,
         split_files=split_files,
+        official_split=official_split,
         seed=seed,
         sparse_format=sparse_format,
         source="lidar" if beams is None else f"lidar-{beams}beam",

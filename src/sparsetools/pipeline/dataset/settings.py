@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 
 from ...errors import ParameterError
 from ...validate import check_choice, check_int_range
+from .official_splits import official_split
 from .splits import DEFAULT_SPLIT, parse_split_fractions, sequence_resolver
 
 __all__ = ["SPARSE_FORMATS", "BuildSettings"]
@@ -39,6 +40,10 @@ class BuildSettings:
         Split lists, each a path or a ``(name, path)`` pair (``--split-file``).
     seed : int
         Seed of the split assignment.
+    official_split : str, optional
+        A split shipped with sparsetools (``--split eigen``, see :mod:`.official_splits`):
+        its lists give each frame's split. Recorded only when given, so that a dataset made
+        before it existed resumes.
     """
 
     sparse_format: str = "both"
@@ -53,14 +58,20 @@ class BuildSettings:
     )
     split_files: tuple | None = field(default=None, metadata={"option": "--split-file"})
     seed: int = 0
+    official_split: str | None = field(default=None, metadata={"option": "--split"})
 
     def __post_init__(self) -> None:
         check_choice(self.sparse_format, "sparse_format", SPARSE_FORMATS)
         if not str(self.source).strip():
             raise ParameterError("must not be empty", param="source")
         sequence_resolver(self.sequence_from, "sequence")  # refuses a bad spec
-        if self.split is not None and self.split_files:
-            raise ParameterError("give split fractions or split files, not both")
+        given = [self.split is not None, bool(self.split_files), self.official_split is not None]
+        if sum(given) > 1:
+            raise ParameterError(
+                "give one of split fractions, split files and an official split, not two"
+            )
+        if self.official_split is not None:
+            object.__setattr__(self, "official_split", official_split(self.official_split).name)
         if self.split is not None:
             object.__setattr__(self, "split", parse_split_fractions(self.split))
         if self.split_files is not None:
@@ -74,17 +85,23 @@ class BuildSettings:
         cls,
         splits: str | Mapping[str, float] | None = None,
         split_files: Iterable[str | tuple[str, str]] | None = None,
+        official_split: str | None = None,
         **settings,
     ) -> BuildSettings:
         """Settings from a choice of splits as the command line gives it.
 
         ``splits``: fractions (``0.8,0.1,0.1``, ``train=0.7,val=0.3`` or a mapping),
         ``"tree"`` (the split the inputs' tree gives), or None: the default fractions
-        (0.8/0.1/0.1 train/val/test) unless ``split_files`` are given.
+        (0.8/0.1/0.1 train/val/test) unless ``split_files`` or an ``official_split`` (a name
+        of :data:`.official_splits.OFFICIAL_SPLITS`) are given.
         """
         split_files = tuple(split_files or ())
-        if splits is not None and split_files:
-            raise ParameterError("give split fractions or split files, not both")
+        if sum([splits is not None, bool(split_files), official_split is not None]) > 1:
+            raise ParameterError(
+                "give one of split fractions, split files and an official split, not two"
+            )
+        if official_split is not None:
+            return cls(split=None, official_split=official_split, **settings)
         if split_files or splits == "tree":
             return cls(split=None, split_files=split_files or None, **settings)
         return cls(split=DEFAULT_SPLIT if splits is None else splits, **settings)
@@ -93,10 +110,14 @@ class BuildSettings:
     def split_from_tree(self) -> bool:
         """Whether each frame's split is the one its input tree gives (KITTI depth
         completion ``train`` / ``val``, ``val_selection``)."""
-        return self.split is None and not self.split_files
+        return self.split is None and not self.split_files and self.official_split is None
 
     def split_method(self) -> dict:
         """How splits are assigned, as the manifest's metadata says (without split-file counts)."""
+        if self.official_split is not None:
+            split = official_split(self.official_split)
+            return {"method": "official", "name": split.name,
+                    "files": {k: f"{split.dataset}/{f}" for k, f in split.lists}}  # fmt: skip
         if self.split_files:
             return {"method": "split-file"}
         if self.split_from_tree:
