@@ -191,6 +191,13 @@ def test_kitti_dc_layout_names_sizes_and_read_back(trained, tmp_path):
     ev = summary("eval", "--pred", out, "--gt", sel)
     assert ev["metrics"]["n_holes"] == 0 and ev["unmatched_predictions"] == 0
     assert ev["metrics"]["n_pixels"] > 0
+    # a submission folder without sparsetools' record (copied, or written by other code) is
+    # keyed by its names alike
+    plain = tmp_path / "plain"
+    plain.mkdir()
+    for p in out.glob("*.png"):
+        shutil.copy(p, plain / p.name)
+    assert summary("eval", "--pred", plain, "--gt", sel)["metrics"] == ev["metrics"]
 
 
 def test_kitti_dc_test_set_keeps_the_input_names(trained, tmp_path):
