@@ -120,6 +120,41 @@ def test_eval_of_the_predictions_equals_eval_of_the_checkpoint(trained, tmp_path
     assert a["delta1"] == pytest.approx(b["delta1"], abs=1.0 / n_px + 1e-9)
 
 
+def _split_gt_tree(ds: Path, split: str, out: Path) -> Path:
+    reader = DatasetReader(ds).split(split)
+    for i in range(len(reader)):
+        s = reader.sample(i)
+        write_depth_png(out / s["sequence"] / f"{s['frame']}.png", s["gt"])
+    return out
+
+
+def test_self_supervised_checkpoint_predicts_relative_depth(tmp_path):
+    """A camera-only self-supervised model: predict writes its unscaled depth and says so;
+    eval --pred --scaling median then gives eval --checkpoint's (median-scaled) metrics. An
+    untrained one predicts ~0.2 m everywhere, where 1/256 m PNG steps are 2 % errors: the
+    float32 .npy maps (--format npy) agree to float precision, the PNGs only to 2 %."""
+    from test_selfsup_scene import video, write_video_dataset
+
+    seqs = {f"s{i}": video(6, 32, 48, speed=0.6 + 0.2 * i, start=2.0 * i) for i in range(3)}
+    ds = write_video_dataset(tmp_path / "ds", seqs, {"s0": "train", "s1": "val", "s2": "test"})
+    r = run("train", ds, "-o", tmp_path / "run", "--input", "rgb", "--self-supervised",
+            "--pose-width", "4", *TINY)  # fmt: skip
+    assert r.exit_code == 0, r.output
+    ckpt = tmp_path / "run" / "best.pt"
+    s = summary("predict", ckpt, ds, "-o", tmp_path / "npy", "--format", "npy")
+    assert s["kind"] == "self-supervised" and s["processed"] == 6 and "relative" in s["scale"]
+    assert len(list((tmp_path / "npy").rglob("*.npy"))) == 6
+    assert summary("predict", ckpt, ds, "-o", tmp_path / "png")["processed"] == 6
+    gt = _split_gt_tree(ds, "test", tmp_path / "gt")
+    by_ckpt = summary("eval", "--checkpoint", ckpt, ds, "-o", tmp_path / "e")
+    assert by_ckpt["median_scaling"] is True
+    b = by_ckpt["metrics"]
+    for folder, rel in (("npy", 1e-5), ("png", 0.02)):
+        a = summary("eval", "--pred", tmp_path / folder, "--gt", gt, "--scaling", "median")
+        for k in ("abs_rel", "rmse", "mae", "delta1"):
+            assert a["metrics"][k] == pytest.approx(b[k], rel=rel), (folder, k)
+
+
 def test_input_mode_mismatch_is_one_line_and_writes_nothing(trained, tmp_path):
     ds, _ = trained
     conf = make_confidence_dataset(tmp_path / "conf")
@@ -135,6 +170,9 @@ def test_kitti_dc_layout_refuses_other_sizes(trained, tmp_path):
     ds, ckpt = trained
     r = run("predict", ckpt, ds, "-o", tmp_path / "out", "--layout", "kitti-dc")
     assert "are 1216x352" in one_line_error(r)
+    r = run("predict", ckpt, ds, "-o", tmp_path / "out", "--layout", "kitti-dc", "--format", "npy")
+    assert r.exit_code == 2 and "--format png" in r.output
+    assert not (tmp_path / "out").exists()
 
 
 # -- the KITTI depth-completion layouts --------------------------------------------------------------

@@ -11,6 +11,7 @@ from .options import (
     batch_size_option,
     device_option,
     emit_summary,
+    format_option,
     json_option,
     layout_option,
     output_dir_option,
@@ -38,6 +39,12 @@ log = logging.getLogger(__name__)
     "layout, flat (<drive>_groundtruth_depth_<frame>_image_02.png for val_selection_cropped, "
     "the input's name for the test set; 1216x352).",
 )
+@format_option(
+    ("png", "npy"),
+    default="png",
+    help="png: KITTI uint16 depth PNGs (depth x 256, steps of 1/256 m); npy: float32 metres "
+    "(--layout tree), for relative depth that 1/256 m steps would coarsen.",
+)
 @device_option
 @batch_size_option(default=4, help="Samples the network sees at once.")
 @overwrite_option(
@@ -46,9 +53,12 @@ log = logging.getLogger(__name__)
 )
 @json_option
 @quiet_debug_options
-def predict(checkpoint, dataset, out_dir, split, layout, device, batch_size, overwrite, as_json):
+def predict(
+    checkpoint, dataset, out_dir, split, layout, fmt, device, batch_size, overwrite, as_json
+):
     """Run a checkpoint of `sparsetools train` (supervised or self-supervised) over one split
-    of DATASET and write each sample's depth as a KITTI uint16 PNG (depth x 256).
+    of DATASET and write each sample's depth as a KITTI uint16 PNG (depth x 256), or as
+    float32 metres in .npy files (--format npy).
 
     CHECKPOINT is best.pt / last.pt (or the run folder: its best.pt). The dataset must provide
     what the checkpoint's input mode takes (sparse depth, confidence maps). Pixels with no
@@ -64,6 +74,8 @@ def predict(checkpoint, dataset, out_dir, split, layout, device, batch_size, ove
       sparsetools predict out/run/best.pt out/dc_selection --split val_selection \\
           --layout kitti-dc -o out/submission
     """
+    if layout == "kitti-dc" and fmt != "png":
+        raise click.UsageError("--layout kitti-dc writes the benchmark's PNGs: --format png")
     from ..train._torch_required import require_torch
 
     require_torch("predict")
@@ -82,6 +94,7 @@ def predict(checkpoint, dataset, out_dir, split, layout, device, batch_size, ove
         dataset=str(Path(dataset).resolve()),
         split=split,
         layout=layout,
+        format=fmt,
     )
     quiet = root_flag("quiet")
     batch = Batch(overwrite=overwrite, progress=False if quiet else None, debug=root_flag("debug"))
@@ -92,6 +105,8 @@ def predict(checkpoint, dataset, out_dir, split, layout, device, batch_size, ove
     totals["input_mode"] = opened.input_mode
     if opened.relative_depth:
         totals["scale"] = "relative (camera-only self-supervised): eval with --scaling median"
+        if fmt == "png":
+            log.warning("relative depth in 1/256 m steps loses precision: --format npy keeps it")
     if totals.get("holes"):
         log.warning(
             "%d pixel(s) of %d map(s) have no prediction (written 0)%s",

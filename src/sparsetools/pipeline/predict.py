@@ -13,16 +13,20 @@ metres, :class:`DepthPredictor`; the command line hands in the torch one of
   its flat ``image/`` folder) under its input's name (``0000000000.png``); every sample must
   be 1216x352, the size of both selection sets.
 
-Values: depth x 256 rounded to the nearest integer (:func:`~sparsetools.io.image.encode_depth_png`).
-A pixel with no value (0, negative, NaN, infinite) is written as 0 and counted as a hole:
-holes are never filled in silence, and the devkit treats 0 as a missing prediction. A value
-outside what a uint16 PNG holds (depth >= 65535/256 = 255.996 m, or below 1/512 m) is
-clipped to the range and counted (``clipped``), as every depth PNG sparsetools writes. Both
-counts are in each frame's record and in the summary, with the first frames that have any.
+Values: depth x 256 rounded to the nearest integer (:func:`~sparsetools.io.image.encode_depth_png`),
+or with ``format="npy"`` (``tree`` layout only) float32 metres in ``.npy`` files, which keep
+the precision that relative depth (a camera-only self-supervised model's, often well under
+1 m) loses in steps of 1/256 m. A pixel with no value (0, negative, NaN, infinite) is written
+as 0 and counted as a hole: holes are never filled in silence, and the devkit treats 0 as a
+missing prediction. A value outside what a uint16 PNG holds (depth >= 65535/256 = 255.996 m,
+or below 1/512 m) is clipped to the range and counted (``clipped``), as every depth PNG
+sparsetools writes. Both counts are in each frame's record and in the summary, with the
+first frames that have any.
 """
 
 from __future__ import annotations
 
+import io
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,6 +42,7 @@ from .core import BatchJob, FrameStats, FrameTask
 
 __all__ = [
     "DC_SIZE",
+    "FORMATS",
     "LAYOUTS",
     "DepthPredictor",
     "PredictInput",
@@ -49,6 +54,7 @@ __all__ = [
 ]
 
 LAYOUTS = ("tree", "kitti-dc")
+FORMATS = ("png", "npy")
 #: (width, height) of KITTI depth completion's val_selection_cropped and test sets.
 DC_SIZE = (1216, 352)
 _DRIVE = re.compile(r"\d{4}_\d{2}_\d{2}_drive_\d{4}_sync")
@@ -99,9 +105,16 @@ class PredictSettings:
     dataset: str = field(default="", metadata={"option": "DATASET"})
     split: str = field(default="test", metadata={"option": "--split"})
     layout: str = field(default="tree", metadata={"option": "--layout"})
+    format: str = field(default="png", metadata={"option": "--format"})
 
     def __post_init__(self) -> None:
         check_choice(self.layout, "layout", LAYOUTS)
+        check_choice(self.format, "format", FORMATS)
+        if self.layout == "kitti-dc" and self.format != "png":
+            raise ParameterError(
+                "--layout kitti-dc writes the benchmark's uint16 PNGs: use --format png",
+                param="format",
+            )
 
 
 @dataclass(frozen=True)
@@ -176,7 +189,7 @@ class PredictJob(BatchJob[PredictInput]):
             if self.settings.layout == "kitti-dc":
                 target = Path(out_dir) / kitti_dc_name(s)
             else:
-                target = s.key.path(out_dir, ".png")
+                target = s.key.path(out_dir, f".{self.settings.format}")
             sources = tuple(Path(p) for p in s.sources)
             out.append(FrameTask(s.key, PredictInput(s.index, s.width, s.height),
                                  {"depth": target}, sources))  # fmt: skip
@@ -196,7 +209,12 @@ class PredictJob(BatchJob[PredictInput]):
         with np.errstate(invalid="ignore"):
             valid = np.isfinite(depth) & (depth > 0)
         n_valid = int(np.count_nonzero(valid))
-        data, clipped = encode_depth_png(depth)
+        if self.settings.format == "npy":
+            buf = io.BytesIO()
+            np.save(buf, np.where(valid, depth, 0).astype(np.float32), allow_pickle=False)
+            data, clipped = buf.getvalue(), 0
+        else:
+            data, clipped = encode_depth_png(depth)
         with atomic_path(task.outputs["depth"]) as tmp:
             tmp.write_bytes(data)
         return PredictStats(
