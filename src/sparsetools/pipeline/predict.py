@@ -180,12 +180,19 @@ class PredictJob(BatchJob[PredictInput]):
     settings: PredictSettings = field(default_factory=PredictSettings)
     predictor: Any = field(default=None, compare=False, repr=False)
 
-    def tasks(self, frames: list[PredictSample], out_dir: Path) -> list[FrameTask[PredictInput]]:
-        """One task per sample; ``kitti-dc`` names are checked for every sample first."""
-        out = []
+    def planned(self, frames: list[PredictSample]) -> PredictJob:
+        """Checks every sample's size (and ``kitti-dc`` name) before the output folder is made."""
         for s in frames:
             check_int_range(s.width, "width", low=1)
             check_int_range(s.height, "height", low=1)
+            if self.settings.layout == "kitti-dc":
+                kitti_dc_name(s)
+        return self
+
+    def tasks(self, frames: list[PredictSample], out_dir: Path) -> list[FrameTask[PredictInput]]:
+        """One task per sample."""
+        out = []
+        for s in frames:
             if self.settings.layout == "kitti-dc":
                 target = Path(out_dir) / kitti_dc_name(s)
             else:
