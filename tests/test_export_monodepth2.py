@@ -120,7 +120,7 @@ def test_gt_depths_round_trips_and_equals_the_reference(raw_root, tmp_path):
         ref = reference_map(raw_root, frame)
         np.testing.assert_array_equal(gt, ref)
         assert 10_000 < np.count_nonzero(gt) < 30_000  # a 64-beam scan in the camera's view
-    # the Velodyne x, not the camera z: ~0.27 m further (the LiDAR sits behind the camera)
+    # the Velodyne x, not the camera z: ~0.28 m further (the LiDAR sits behind the camera)
     scan = raw_root / DATE / DRIVE / "velodyne_points" / "data" / "0000000004.bin"
     points = np.fromfile(scan, dtype=np.float32).reshape(-1, 4)
     z = eigen_depth_map(points, _projection(raw_root), (375, 1242), value="camera-z")

@@ -14,7 +14,7 @@ drop-in ``gt_depths.npz`` this follows its convention, not sparsetools' own proj
 
 ``value="camera-z"`` stores the camera z instead (what sparsetools' ``project`` stores, with
 monodepth2's points, offset and smallest-value rule): the two differ by the LiDAR-camera
-offset (~0.27 m on KITTI) and the small rotation between the sensors.
+offset (~0.28 m on KITTI) and the small rotation between the sensors.
 """
 
 from __future__ import annotations

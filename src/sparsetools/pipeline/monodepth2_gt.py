@@ -147,9 +147,9 @@ def export_monodepth2_gt(
                *(s for s, _ in scans)]  # fmt: skip
     record = OutputFile(target, "export", settings, sources, overwrite=overwrite,
                         noun="a monodepth2 ground truth")  # fmt: skip
-    result = {"lines": len(lines), "value": value, "output": str(target)}
     if record.up_to_date():
-        return {**result, "maps": 0, "up_to_date": True}
+        return {"lines": len(lines), "maps": 0, "up_to_date": True, "value": value,
+                "output": str(target)}  # fmt: skip
     cams = {c: read_kitti_raw_calib(c, camera=2) for c in calibs}
     maps = np.empty(len(scans), dtype=object)
     sizes: Counter = Counter()
@@ -169,5 +169,6 @@ def export_monodepth2_gt(
     with atomic_path(target, overwrite=True) as tmp, open(tmp, "wb") as fh:
         np.savez_compressed(fh, data=maps)  # a file object: no ".npz" appended to the name
     record.record()
-    return {**result, "maps": len(scans), "sizes": dict(sizes),
-            "density": round(density / len(scans), 5)}  # fmt: skip
+    return {"lines": len(lines), "maps": len(scans), "sizes": dict(sizes),
+            "density": round(density / len(scans), 5), "value": value,
+            "output": str(target)}  # fmt: skip
