@@ -302,6 +302,30 @@ def test_holes_and_clipped_values_are_counted_never_filled(tmp_path):
     assert ev["metrics"]["n_holes"] == 4
 
 
+def test_holes_of_a_network_are_reported_by_the_command(trained, tmp_path, monkeypatch):
+    """Through the command line: a network giving NaN and 0 at two pixels of every map."""
+    from sparsetools.train.predict import Predictor
+
+    original = Predictor.depth
+
+    def with_holes(self, index):
+        d = original(self, index).copy()
+        d[0, 0], d[-1, -1] = np.nan, 0.0
+        return d
+
+    monkeypatch.setattr(Predictor, "depth", with_holes)
+    ds, ckpt = trained
+    r = CliRunner().invoke(cli, ["predict", str(ckpt), str(ds), "-o", str(tmp_path / "p"),
+                                 "--json"])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    s = json.loads(r.stdout)
+    assert s["holes"] == 2 * s["frames"] and s["frames_with_holes"] == s["frames"]
+    assert f"{s['holes']} pixel(s) of {s['frames']} map(s) have no prediction" in r.stderr
+    for p in (tmp_path / "p").rglob("*.png"):
+        raw = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        assert raw[0, 0] == raw[-1, -1] == 0 and np.count_nonzero(raw == 0) == 2
+
+
 def test_eval_reports_unmatched_frames_on_both_sides(tmp_path):
     for side, names in (("pred", ("a", "b", "x")), ("gt", ("a", "b"))):
         for n in names:

@@ -113,4 +113,9 @@ def predict(
             totals["holes"], totals["frames_with_holes"],
             ": the KITTI devkit counts them as missing" if layout == "kitti-dc" else "",
         )  # fmt: skip
+    if totals.get("clipped"):
+        log.warning(
+            "%d pixel(s) of %d map(s) were clipped to what a uint16 PNG holds (>= 256 m or "
+            "< 1/512 m)", totals["clipped"], totals["frames_with_clipped"],
+        )  # fmt: skip
     emit_summary(totals, as_json=as_json, title=f"predictions written to {out_dir}")
