@@ -17,6 +17,7 @@ from .options import (
     emit_summary,
     gt_option,
     json_option,
+    layout_option,
     named_split,
     nuscenes_version_option,
     one_split_choice,
@@ -413,12 +414,13 @@ def kitti_dc(root, out_dir, raw, sparse_name, gt_name, selection, batch, as_json
 @dataset.command("export")
 @click.argument("maps", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @output_dir_option(help="Root of the layout written.")
-@click.option(
-    "--layout", type=click.Choice(["kitti-dc", "kitti-selection"]), default="kitti-dc",
-    show_default=True,
+@layout_option(
+    ("kitti-dc", "kitti-selection", "monodepth2-gt"),
+    default="kitti-dc",
     help="kitti-dc: {train,val}/<drive>/proj_depth/<name>/image_02/<frame>.png; kitti-selection:"
-    " <name>/<drive>_<name>_<frame>_image_02.png (val_selection_cropped naming).",
-)  # fmt: skip
+    " <name>/<drive>_<name>_<frame>_image_02.png (val_selection_cropped naming); monodepth2-gt:"
+    " OUT/gt_depths.npz for the lines of --split-file, MAPS being a KITTI raw tree.",
+)
 @click.option(
     "--name",
     default="velodyne_raw",
@@ -430,19 +432,44 @@ def kitti_dc(root, out_dir, raw, sparse_name, gt_name, selection, batch, as_json
     help="A depth-completion tree whose train/val folders give each drive's split.",
 )  # fmt: skip
 @split_option("default_split", help="Split of drives --split-from lacks.")
+@_split_file_option(
+    help="--layout monodepth2-gt: the split's test_files.txt (<date>/<drive> <frame> [l|r] "
+    "lines); one map per line, in its order."
+)
+@click.option(
+    "--depth-value", type=click.Choice(["velodyne-x", "camera-z"]), default="velodyne-x",
+    show_default=True,
+    help="--layout monodepth2-gt: what a pixel holds: the point's Velodyne x (monodepth2's "
+    "Eigen ground truth, generate_depth_map(vel_depth=True)) or its camera z.",
+)  # fmt: skip
 @batch_options
-def export(maps, out_dir, layout, name, split_from, default_split, batch, as_json):
-    """Write depth maps of KITTI drives in the official depth-completion layout.
+def export(maps, out_dir, layout, name, split_from, default_split, split_files, depth_value,
+           batch, as_json):  # fmt: skip
+    """Write depth maps of KITTI drives in the official depth-completion layout, or the
+    ground truth monodepth2 evaluates with.
 
     MAPS holds maps per drive (<drive>/<frame>.png: a project, beams+project, jbf-expand or
     densify output for a KITTI raw root); they are copied byte for byte, so a 4-beam or radar
     variant of the benchmark drops into code that reads only the official layout.
 
+    With --layout monodepth2-gt, MAPS is a KITTI raw tree and OUT/gt_depths.npz holds one
+    float32 depth map (metres, 0 = none) per line of --split-file, as monodepth2's
+    export_gt_depth.py --split eigen writes it: the Velodyne scan projected into image_02
+    (x < 0 dropped, -1 px offset, nearest value per pixel), storing the Velodyne x. A line
+    whose scan is missing is refused (monodepth2 pairs maps with predictions by line).
+
     \b
-    Example:
+    Examples:
       sparsetools dataset export out/depth4 -o out/kitti_dc4 --name velodyne_raw_4beam \\
           --split-from /data/kitti_dc/data_depth_velodyne
+      sparsetools dataset export /data/kitti_raw -o out/eigen --layout monodepth2-gt \\
+          --split-file monodepth2/splits/eigen/test_files.txt
     """
+    if layout == "monodepth2-gt":
+        _export_monodepth2_gt(maps, out_dir, split_files, split_from, depth_value, batch, as_json)
+        return
+    if split_files:
+        raise click.UsageError("--split-file is for --layout monodepth2-gt")
     from ..io.sources import depth_frames
     from ..io.sources.kitti import drive_splits
     from ..pipeline import run_job
@@ -453,6 +480,21 @@ def export(maps, out_dir, layout, name, split_from, default_split, batch, as_jso
     frames = depth_frames([maps], role="depth", option="MAPS")
     summary = run_job(job, frames, out_dir, batch=batch, inputs=[maps])
     emit_summary(summary, as_json=as_json, title=f"maps exported to {out_dir}")
+
+
+def _export_monodepth2_gt(root, out_dir, split_files, split_from, depth_value, batch, as_json):
+    """``export --layout monodepth2-gt``: one archive, not per-frame work (no run_job)."""
+    from ..pipeline.monodepth2_gt import export_monodepth2_gt
+
+    if len(split_files) != 1 or isinstance(split_files[0], tuple):
+        raise click.UsageError("--layout monodepth2-gt needs one --split-file FILE")
+    if split_from is not None:
+        raise click.UsageError("--split-from is for --layout kitti-dc")
+    result = export_monodepth2_gt(
+        root, split_files[0], out_dir, value=depth_value, overwrite=batch.overwrite,
+        progress=batch.show_progress,
+    )  # fmt: skip
+    emit_summary(result, as_json=as_json, title=f"monodepth2 ground truth written to {out_dir}")
 
 
 @dataset.command("info")

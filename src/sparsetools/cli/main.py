@@ -35,6 +35,7 @@ COMMANDS = {
     "stats": "stats:stats",
     "train": "train:train",
     "eval": "eval:eval_",
+    "predict": "predict:predict",
     "pipeline": "pipeline:pipeline",
     "demo": "pipeline:demo",
 }

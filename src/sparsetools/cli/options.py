@@ -43,6 +43,7 @@ __all__ = [
     "image_size_option",
     "int_list",
     "json_option",
+    "layout_option",
     "max_depth_option",
     "min_depth_option",
     "named_split",
@@ -264,6 +265,18 @@ def batch_size_option(f=None, *, default: int = 8, help: str | None = None):
         )(fn)
 
     return deco(f) if f is not None else deco
+
+
+def layout_option(choices, *, default: str, help: str):
+    """``--layout``: how a command lays out the files it writes (one of ``choices``)."""
+
+    def deco(fn):
+        return click.option(
+            "--layout", type=click.Choice(list(choices)), default=default, show_default=True,
+            help=help,
+        )(fn)  # fmt: skip
+
+    return deco
 
 
 def json_option(f=None, *, help: str = "Print the summary as JSON on stdout."):

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from ..ops.metrics import aggregate_metrics, depth_metrics
-from .checkpoint import load_checkpoint, model_from_checkpoint
+from .checkpoint import Checkpoint, load_checkpoint, model_from_checkpoint
 from .data import DepthDataset, collate
 from .losses import depth_loss
 from .model import DepthCompletionUNet
@@ -44,6 +44,7 @@ __all__ = [
     "evaluate_folders",
     "evaluation_loader",
     "format_eval_text",
+    "open_model",
     "picture_indices",
     "run_evaluation",
     "score_batch",
@@ -201,6 +202,34 @@ def run_evaluation(
     return EvaluationPass(per_image, (loss_sum / n_loss if n_loss else math.nan), pics)
 
 
+def open_model(
+    checkpoint: str | os.PathLike, *, device: str = "cpu", input_mode: str | None = None
+) -> tuple[Checkpoint, DepthCompletionUNet, torch.device]:
+    """A checkpoint's depth network, on ``device`` and in evaluation mode.
+
+    Parameters
+    ----------
+    checkpoint : path-like
+        ``best.pt`` / ``last.pt`` (or the run folder: its ``best.pt``); supervised or
+        self-supervised.
+    device : str
+        ``cpu``, ``cuda``, ``cuda:N`` (checked).
+    input_mode : str, optional
+        Refuse a checkpoint of another input mode.
+
+    Returns
+    -------
+    ckpt : Checkpoint
+    model : DepthCompletionUNet
+    device : torch.device
+    """
+    ckpt = load_checkpoint(checkpoint, input_mode=input_mode)
+    dev = resolve_device(device)
+    model = model_from_checkpoint(ckpt).to(dev)
+    model.eval()
+    return ckpt, model, dev
+
+
 def evaluate_checkpoint(
     checkpoint: str | os.PathLike,
     dataset: str | os.PathLike,
@@ -240,9 +269,7 @@ def evaluate_checkpoint(
     -------
     EvalResult
     """
-    ckpt = load_checkpoint(checkpoint, input_mode=input_mode)
-    dev = resolve_device(device)
-    model = model_from_checkpoint(ckpt).to(dev)
+    ckpt, model, dev = open_model(checkpoint, device=device, input_mode=input_mode)
     selfsup = ckpt.config.selfsup
     if median_scaling is None:
         median_scaling = selfsup is not None and not selfsup.metric_scale

@@ -13,10 +13,12 @@ from .kitti import (
     is_kitti_object,
     is_kitti_raw,
     is_kitti_raw_calib_dir,
+    is_kitti_selection_maps,
     is_kitti_val_selection,
     kitti_depth_completion_index,
     kitti_object_index,
     kitti_raw_index,
+    kitti_selection_maps_index,
     kitti_val_selection_index,
 )
 from .tree import (
@@ -92,6 +94,8 @@ def index_input(
         if role == "image" and is_kitti_object(p):
             base = p / "training" if (p / "training").is_dir() else p
             return index_tree(base / f"image_{camera}", suffixes, option=option)
+        if role in ("sparse", "gt", "depth") and is_kitti_selection_maps(p):
+            return kitti_selection_maps_index(p, camera=camera, option=option)
         if role == "calib" and is_kitti_raw_calib_dir(p):
             raise ParameterError(
                 f"{option}: {p} is one KITTI raw calibration, not a folder of files"

@@ -11,7 +11,9 @@
   ``groundtruth`` (annotated maps) or any map set laid out the same way; the split comes from
   the tree. Sequence = drive, so the maps match the raw images of the same drive.
 - **KITTI val_selection_cropped**: ``{image,velodyne_raw,groundtruth_depth,intrinsics}/
-  <drive>_<kind>_<frame>_image_0N.<ext>``; sequence = drive, split ``val_selection``.
+  <drive>_<kind>_<frame>_image_0N.<ext>``; sequence = drive, split ``val_selection``. A flat
+  folder of depth maps named that way (a depth-completion submission, ``predict --layout
+  kitti-dc``) is keyed the same way (:func:`kitti_selection_maps_index`).
 
 Nothing here reads a cloud or an image: only paths are found (timestamps excepted).
 """
@@ -34,11 +36,13 @@ __all__ = [
     "is_kitti_raw",
     "is_kitti_raw_calib_dir",
     "is_kitti_raw_drive",
+    "is_kitti_selection_maps",
     "is_kitti_val_selection",
     "kitti_depth_completion_index",
     "kitti_object_index",
     "kitti_raw_drives",
     "kitti_raw_index",
+    "kitti_selection_maps_index",
     "kitti_val_selection_index",
     "read_kitti_timestamps",
 ]
@@ -337,6 +341,48 @@ def kitti_val_selection_index(
     return FileIndex(
         root, files, layout="kitti-val-selection", splits=dict.fromkeys(files, "val_selection")
     )
+
+
+def _selection_maps(path: Path) -> list[Path] | None:
+    """The PNGs of a flat folder when every one is named ``<drive>_<kind>_<frame>_image_0N``
+    (and there is no subfolder but hidden ones); None otherwise."""
+    if not path.is_dir():
+        return None
+    pngs = []
+    for f in path.iterdir():
+        if f.name.startswith("."):
+            continue
+        if not f.is_file() or f.suffix.lower() != ".png" or not _SELECTION.match(file_stem(f)):
+            return None
+        pngs.append(f)
+    return sorted(pngs) or None
+
+
+def is_kitti_selection_maps(path: str | os.PathLike) -> bool:
+    """A flat folder of depth PNGs named as ``val_selection_cropped`` names its maps (a KITTI
+    depth-completion submission: ``<drive>_groundtruth_depth_<frame>_image_02.png``)."""
+    return _selection_maps(Path(path)) is not None
+
+
+def kitti_selection_maps_index(
+    path: str | os.PathLike, *, camera: int = 2, option: str = "--pred"
+) -> FileIndex:
+    """The maps of a flat folder named as ``val_selection_cropped`` names them, keyed
+    (drive, frame) like :func:`kitti_val_selection_index`, so that they match its ground
+    truth."""
+    root = Path(path)
+    files = {}
+    for f in _selection_maps(root) or ():
+        m = _SELECTION.match(file_stem(f))
+        if int(m["camera"]) != camera:
+            continue
+        key = FrameKey(m["drive"], m["frame"])
+        if key in files:
+            raise FormatError(f"{option}: {files[key]} and {f} are the same frame '{key}'")
+        files[key] = f
+    if not files:
+        raise FormatError(f"{option}: {root}: no <drive>_<kind>_<frame>_image_0{camera}.png maps")
+    return FileIndex(root, dict(sorted(files.items())), layout="kitti-val-selection")
 
 
 def drive_splits(tree: str | os.PathLike) -> dict[str, str]:
