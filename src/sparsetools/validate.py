@@ -556,7 +556,7 @@ def parse_int_list(value, name: str, *, low: int | None = None, unique: bool = F
 
 
 def parse_frame_range(text, name: str = "frame_range") -> tuple[int | None, int | None, int]:
-    """``"START:STOP[:STEP]"`` (Python slice syntax over a sorted list, each part optional:
+    """``"FROM:TO[:STEP]"`` (Python slice syntax over a sorted list, each part optional:
     ``"10:20"``, ``":100"``, ``"::10"``, ``"-5:"``) -> ``(start, stop, step)``.
 
     ``start`` and ``stop`` are positions (None: from the first / to the end; negative: from
@@ -568,13 +568,13 @@ def parse_frame_range(text, name: str = "frame_range") -> tuple[int | None, int 
     parts = [p.strip() for p in text.split(":")]
     if len(parts) not in (2, 3):
         raise ParameterError(
-            f"expected START:STOP or START:STOP:STEP such as 0:100:5, got {text!r}", param=name
+            f"expected FROM:TO or FROM:TO:STEP such as 0:100:5, got {text!r}", param=name
         )
     try:
         values = [int(p) if p else None for p in parts]
     except ValueError:
         raise ParameterError(
-            f"expected whole numbers in START:STOP[:STEP], got {text!r}", param=name
+            f"expected whole numbers in FROM:TO[:STEP], got {text!r}", param=name
         ) from None
     start, stop = values[0], values[1]
     step = values[2] if len(values) == 3 and values[2] is not None else 1

@@ -103,7 +103,7 @@ def _frame_range(ctx, param, value):
     "--frame-range",
     default="",
     callback=_frame_range,
-    metavar="START:STOP[:STEP]",
+    metavar="FROM:TO[:STEP]",
     help="Only these frames of a folder or dataset: positions in the sorted frame keys, "
     "Python slice syntax (0:100, ::10, -50:).",
 )

@@ -149,7 +149,7 @@ class ManyVizSettings:
     fps : float, optional
         Frames per second of a video (videos only; default 10, KITTI's LiDAR rate).
     frame_range : str
-        ``START:STOP[:STEP]`` over the sorted frame keys ("" = all frames).
+        ``FROM:TO[:STEP]`` over the sorted frame keys ("" = all frames).
     split : str, optional
         The split of a dataset input.
     """
@@ -233,7 +233,7 @@ class VizFrame:
 
 
 def select_frames(frames: list, frame_range: str) -> list:
-    """``frames`` (sorted) sliced by ``--frame-range START:STOP[:STEP]``.
+    """``frames`` (sorted) sliced by ``--frame-range FROM:TO[:STEP]``.
 
     Raises
     ------
@@ -270,7 +270,7 @@ def viz_frames(
     split : str, optional
         The split of a dataset input.
     frame_range : str
-        ``START:STOP[:STEP]`` over the sorted keys of the first input (before matching).
+        ``FROM:TO[:STEP]`` over the sorted keys of the first input (before matching).
 
     Returns
     -------
@@ -556,7 +556,7 @@ class VideoJob(_ManyVizJob):
         from ..ops.viz import fit_picture
 
         reader = _reader(self)
-        size = None
+        size = even = None
         n = 0
         with atomic_path(task.outputs["video"]) as tmp:
             writer = None
@@ -565,21 +565,25 @@ class VideoJob(_ManyVizJob):
                     rgb, maps = _load(self, frame, reader)
                     pic = _panels(self, rgb, maps, caption=frame.label,
                                   colorbar=self.settings.colorbar)  # fmt: skip
-                    if size is None:  # MPEG-4 wants even sizes
-                        size = (pic.shape[1] + pic.shape[1] % 2, pic.shape[0] + pic.shape[0] % 2)
+                    if size is None:  # the first frame fixes the size
+                        size = (pic.shape[1], pic.shape[0])
+                        even = (size[0] + size[0] % 2, size[1] + size[1] % 2)  # MPEG-4 wants it
                         writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*FOURCC),
-                                                 float(self.settings.fps), size)  # fmt: skip
+                                                 float(self.settings.fps), even)  # fmt: skip
                         if not writer.isOpened():
                             raise OutputError(
                                 f"OpenCV cannot write an MP4 ({FOURCC}) video to {tmp.parent}"
                             )
-                    pic = fit_picture(pic, size) if pic.shape[:2] != size[::-1] else pic
+                    if pic.shape[:2] != size[::-1]:  # another frame size: fitted, aspect kept
+                        pic = fit_picture(pic, size)
+                    pad = ((0, even[1] - size[1]), (0, even[0] - size[0]), (0, 0))
+                    pic = np.pad(pic, pad, constant_values=255)
                     writer.write(np.ascontiguousarray(pic[:, :, ::-1]))
                     n += 1
             finally:
                 if writer is not None:
                     writer.release()
-        return VideoStats(frames=n, width=size[0], height=size[1])
+        return VideoStats(frames=n, width=even[0], height=even[1])
 
     def finish(self, summary, tasks, out_dir: Path) -> dict:
         return {"videos": len(tasks), "frames": sum(len(t.inputs.frames) for t in tasks),
