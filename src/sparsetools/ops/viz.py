@@ -46,7 +46,8 @@ def label_panel(
     text : str
         ASCII text (OpenCV's Hershey fonts have no other glyphs; others become ``?``).
     scale : float, optional
-        Font scale; default grows with the image height.
+        Font scale; default grows with the image height. A text wider than the picture is
+        written smaller (down to 0.3).
     corner : {"top-left", "bottom-left"}
 
     Notes
@@ -63,12 +64,11 @@ def label_panel(
     if not text:
         return out
     text = text.encode("ascii", "replace").decode("ascii")
-    fixed = scale is not None
     scale = _font_scale(out.shape[0]) if scale is None else float(scale)
     thick = max(1, round(2 * scale))
     (tw, th), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, thick)
     room = out.shape[1] - 2 * max(2, round(6 * scale))
-    if not fixed and tw > room > 0:  # a long label in a narrow picture: a smaller font
+    if tw > room > 0:  # a long label in a narrow picture: a smaller font
         scale = max(0.3, scale * room / tw)
         thick = max(1, round(2 * scale))
         (tw, th), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, thick)
@@ -211,7 +211,11 @@ def depth_panels(
                 panel, panel_width, max(1, round(panel.shape[0] * panel_width / panel.shape[1]))
             )
         if labels is not None:
-            panel = label_panel(panel, labels[i])
+            # small panels (a sheet's tile): the labels as large as the tile's caption
+            scale = None
+            if panel_width is not None:
+                scale = _font_scale(panel.shape[0] * (len(depths) if vertical else 1))
+            panel = label_panel(panel, labels[i], scale=scale)
         panels.append(panel)
     out = side_by_side(panels, vertical=vertical) if len(panels) > 1 else panels[0]
     if caption:
