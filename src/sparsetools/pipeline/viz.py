@@ -341,7 +341,8 @@ def _dataset_frames(root: Path, split: str | None, frame_range: str):
         from ..errors import FormatError
 
         raise FormatError(f"{root}: the dataset{f' split {split}' if split else ''} is empty")
-    frames.sort(key=lambda f: str(f.key))
+    frames.sort(key=lambda f: (f.key.sequence, f.key.frame) if isinstance(f.key, FrameKey)
+                else ("", str(f.key)))  # fmt: skip
     frames = select_frames(frames, frame_range)
     has_gt = all(reader.row(f.sample).gt_path is not None for f in frames)
     return frames, root, DATASET_LABELS if has_gt else DATASET_LABELS[:1]
