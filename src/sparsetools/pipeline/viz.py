@@ -320,6 +320,7 @@ def viz_frames(
 
 
 def _dataset_frames(root: Path, split: str | None, frame_range: str):
+    from ..io.dataset import MANIFEST_NAME
     from ..io.dataset_reader import DatasetReader
     from ..io.sources import FrameKey
 
@@ -327,14 +328,14 @@ def _dataset_frames(root: Path, split: str | None, frame_range: str):
     frames = []
     for i in range(len(reader)):
         r = reader.row(i)
-        files = [reader.path(r.rgb_path, what="rgb_path")]
+        files = [root / MANIFEST_NAME, reader.path(r.rgb_path, what="rgb_path")]
         for rel, what in ((r.sparse_parquet, "sparse_parquet"), (r.sparse_path, "sparse_path"),
                           (r.gt_path, "gt_path")):  # fmt: skip
             if rel is not None:
                 files.append(reader.path(rel, what=what))
         try:
             key = FrameKey(r.sequence or "", r.frame)
-        except Exception:  # an id that is no path-like key: keep it as the frame name
+        except ParameterError:  # a name that is no path-like key: the sample id labels it
             key = r.id
         frames.append(VizFrame(key=key, sample=r.id, sources=tuple(dict.fromkeys(files))))
     if not frames:
@@ -370,12 +371,23 @@ def _load(job, frame: VizFrame, reader):
     return (read_image(frame.image) if frame.image is not None else None), maps
 
 
+#: The dataset reader of this process by (folder, split, manifest size and time): a worker
+#: reads the manifest once, not once per page or video.
+_READERS: dict = {}
+
+
 def _reader(job):
     if job.dataset is None:
         return None
+    from ..io.dataset import MANIFEST_NAME
     from ..io.dataset_reader import DatasetReader
 
-    return DatasetReader(job.dataset, split=job.settings.split)
+    st = os.stat(Path(job.dataset) / MANIFEST_NAME)  # a rebuilt dataset is read again
+    key = (job.dataset, job.settings.split, st.st_size, st.st_mtime_ns)
+    if key not in _READERS:
+        _READERS.clear()
+        _READERS[key] = DatasetReader(job.dataset, split=job.settings.split)
+    return _READERS[key]
 
 
 def _panels(job, rgb, maps, *, panel_width=None, caption=None, colorbar=False):
@@ -390,7 +402,7 @@ def _panels(job, rgb, maps, *, panel_width=None, caption=None, colorbar=False):
     )  # fmt: skip
 
 
-def _check_dataset_panels(job) -> None:
+def _check_labels(job) -> None:
     if job.labels is not None and len(job.labels) != len(job.panels):
         raise ParameterError(
             f"{len(job.labels)} label(s) for {len(job.panels)} panel(s) per frame",
@@ -409,7 +421,7 @@ class SheetStats(FrameStats):
 
 @dataclass(frozen=True)
 class VideoStats(FrameStats):
-    """One video: frames written, frame size (pixels), frames per second."""
+    """One video: frames written, frame size (pixels)."""
 
     frames: int
     width: int
@@ -438,7 +450,7 @@ class _ManyVizJob(BatchJob[ManyVizInput]):
     dataset: str | None = None
 
     def __post_init__(self) -> None:
-        _check_dataset_panels(self)
+        _check_labels(self)
 
     def record(self) -> dict:
         from .provenance import settings_dict
