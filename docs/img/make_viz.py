@@ -1,7 +1,9 @@
-"""Regenerate docs/img/viz_*.png from the real KITTI frame in sample_data/kitti.
+"""Regenerate docs/img/viz_*.png from the real KITTI frame in sample_data/kitti, and the
+contact sheet docs/img/viz_sheet.png from the three synthetic frames in sample_data/synthetic.
 
 Run: ``.venv/bin/python docs/img/make_viz.py`` (uses ``beams``, ``project`` and ``viz``).
-The pictures are downscaled by 0.5 after drawing to stay small.
+The KITTI pictures are downscaled by 0.5 after drawing to stay small; the sheet is drawn at
+its final size (``--tile-width``), so its labels are drawn once at the size they are read.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from sparsetools.cli.main import cli
 
 ROOT = Path(__file__).resolve().parents[2]
 KITTI = ROOT / "sample_data" / "kitti"
+SYNTH = ROOT / "sample_data" / "synthetic"
 IMG = Path(__file__).resolve().parent
 
 
@@ -26,8 +29,10 @@ def sh(*args) -> None:
         sys.exit(f"sparsetools {' '.join(map(str, args))} failed:\n{res.output}")
 
 
-def shrink(path: Path, scale: float = 0.5) -> None:
-    img = cv2.imread(str(path))
+def shrink(drawn: Path, path: Path, scale: float = 0.5) -> None:
+    """Write ``drawn`` (a picture in the temporary folder) to ``path``, scaled by ``scale``:
+    the run records of ``viz`` stay in the temporary folder, not in docs/img."""
+    img = cv2.imread(str(drawn))
     small = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
     cv2.imwrite(str(path), small, [cv2.IMWRITE_PNG_COMPRESSION, 9])
     print(
@@ -54,10 +59,9 @@ def main() -> None:
             "--image",
             image / "000001.png",
             "-o",
-            IMG / "viz_overlay.png",
-            "--overwrite",
+            t / "viz_overlay.png",
         )
-        shrink(IMG / "viz_overlay.png")
+        shrink(t / "viz_overlay.png", IMG / "viz_overlay.png")
         sh(
             "viz",
             "--side-by-side",
@@ -71,11 +75,17 @@ def main() -> None:
             "--dilate",
             "3",
             "-o",
-            IMG / "viz_beams.png",
-            "--overwrite",
+            t / "viz_beams.png",
         )
-        shrink(IMG / "viz_beams.png", 0.45)
+        shrink(t / "viz_beams.png", IMG / "viz_beams.png", 0.45)
         sh("stats", t / "n64" / "000001.png")
+        # many frames: a contact sheet of the synthetic street (LiDAR | dense GT per tile)
+        sh("project", SYNTH / "velodyne", "--calib", SYNTH / "calib", "--image",
+           SYNTH / "image_2", "-o", t / "synth_lidar")  # fmt: skip
+        sh("viz", t / "synth_lidar", SYNTH / "depth_gt", "--image", SYNTH / "image_2",
+           "--labels", "LiDAR,GT", "--sheet", "--grid", "3x1", "--tile-width", "400",
+           "-o", t / "sheets")  # fmt: skip
+        shrink(t / "sheets" / "sheet_0001.png", IMG / "viz_sheet.png", 1.0)
 
 
 if __name__ == "__main__":

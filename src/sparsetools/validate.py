@@ -57,6 +57,7 @@ __all__ = [
     "format_crop",
     "is_legacy_crop",
     "parse_crop",
+    "parse_frame_range",
     "parse_int_list",
     "parse_pair",
     "parse_size",
@@ -552,3 +553,31 @@ def parse_int_list(value, name: str, *, low: int | None = None, unique: bool = F
     if unique and len(set(out)) != len(out):
         raise ParameterError(f"values repeat: {value!r}", param=name)
     return tuple(out)
+
+
+def parse_frame_range(text, name: str = "frame_range") -> tuple[int | None, int | None, int]:
+    """``"FROM:TO[:STEP]"`` (Python slice syntax over a sorted list, each part optional:
+    ``"10:20"``, ``":100"``, ``"::10"``, ``"-5:"``) -> ``(start, stop, step)``.
+
+    ``start`` and ``stop`` are positions (None: from the first / to the end; negative: from
+    the end), ``step`` >= 1. ``""`` selects everything: ``(None, None, 1)``.
+    """
+    text = "" if text is None else str(text).strip()
+    if not text:
+        return None, None, 1
+    parts = [p.strip() for p in text.split(":")]
+    if len(parts) not in (2, 3):
+        raise ParameterError(
+            f"expected FROM:TO or FROM:TO:STEP such as 0:100:5, got {text!r}", param=name
+        )
+    try:
+        values = [int(p) if p else None for p in parts]
+    except ValueError:
+        raise ParameterError(
+            f"expected whole numbers in FROM:TO[:STEP], got {text!r}", param=name
+        ) from None
+    start, stop = values[0], values[1]
+    step = values[2] if len(values) == 3 and values[2] is not None else 1
+    if step < 1:
+        raise ParameterError(f"the step must be >= 1, got {text!r}", param=name)
+    return start, stop, step

@@ -59,6 +59,7 @@ __all__ = [
     "seed_option",
     "size_metres",
     "size_wxh",
+    "video_option",
     "warn_deprecated",
 ]
 
@@ -616,5 +617,18 @@ def sweeps_option(f=None, *, default: int | None = None, help: str):
             show_default=default is not None,
             help=help,
         )(fn)
+
+    return deco(f) if f is not None else deco
+
+
+# -- videos ----------------------------------------------------------------------------------------
+
+
+def video_option(f=None, *, help: str):
+    """``--video``: the command's video mode (``synth-scene``: simulate video sequences;
+    ``viz``: write MP4 videos of sequences)."""
+
+    def deco(fn):
+        return click.option("--video", is_flag=True, help=help)(fn)
 
     return deco(f) if f is not None else deco

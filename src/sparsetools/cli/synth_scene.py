@@ -15,6 +15,7 @@ from .options import (
     overwrite_option,
     quiet_debug_options,
     seed_option,
+    video_option,
     warn_deprecated,
     workers_option,
 )
@@ -59,11 +60,9 @@ _SINGLE_ONLY = ("underwater_frames", "stem_prefix")
     help="Prefix of the frame file names (s1_ gives s1_000000.png): lets several "
     "sequences share one dataset without name clashes.",
 )
-@click.option(
-    "--video",
-    is_flag=True,
+@video_option(
     help="Video mode: --sequences street videos with exact camera/LiDAR poses, moving "
-    "cars and people, a moving-object mask (docs/synth-scene.md).",
+    "cars and people, a moving-object mask (docs/synth-scene.md)."
 )
 @click.option(
     "--sequences",

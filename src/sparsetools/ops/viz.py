@@ -13,6 +13,7 @@ import numpy as np
 
 from ..errors import ParameterError
 from ..validate import (
+    check_choice,
     check_dtype,
     check_finite,
     check_int_range,
@@ -24,15 +25,20 @@ from ..validate import (
 )
 from .colormap import colorize_depth, overlay_depth, side_by_side
 
-__all__ = ["colorbar", "depth_panels", "label_panel"]
+__all__ = ["colorbar", "contact_sheet", "depth_panels", "fit_picture", "label_panel"]
+
+#: Where :func:`label_panel` writes its text.
+CORNERS = ("top-left", "bottom-left")
 
 
 def _font_scale(height: int) -> float:
     return float(np.clip(height / 450.0, 0.35, 1.2))
 
 
-def label_panel(rgb: np.ndarray, text: str, *, scale: float | None = None) -> np.ndarray:
-    """Copy of ``rgb`` with ``text`` written in its top-left corner (white on a dark outline).
+def label_panel(
+    rgb: np.ndarray, text: str, *, scale: float | None = None, corner: str = "top-left"
+) -> np.ndarray:
+    """Copy of ``rgb`` with ``text`` written once in a corner (white on a dark outline).
 
     Parameters
     ----------
@@ -40,20 +46,35 @@ def label_panel(rgb: np.ndarray, text: str, *, scale: float | None = None) -> np
     text : str
         ASCII text (OpenCV's Hershey fonts have no other glyphs; others become ``?``).
     scale : float, optional
-        Font scale; default grows with the image height.
+        Font scale; default grows with the image height. A text wider than the picture is
+        written smaller (down to 0.3).
+    corner : {"top-left", "bottom-left"}
+
+    Notes
+    -----
+    The text is drawn at one position: a black outline (thicker stroke) and the white text
+    over it, so it reads on any background.
     """
     import cv2
 
     check_shape(np.asarray(rgb), "(H, W, 3)", "rgb")
     check_positive(scale, "scale", allow_none=True)
+    check_choice(corner, "corner", CORNERS)
     out = np.ascontiguousarray(rgb, dtype=np.uint8).copy()
     if not text:
         return out
     text = text.encode("ascii", "replace").decode("ascii")
     scale = _font_scale(out.shape[0]) if scale is None else float(scale)
     thick = max(1, round(2 * scale))
-    (_, th), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, thick)
+    (tw, th), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, thick)
+    room = out.shape[1] - 2 * max(2, round(6 * scale))
+    if tw > room > 0:  # a long label in a narrow picture: a smaller font
+        scale = max(0.3, scale * room / tw)
+        thick = max(1, round(2 * scale))
+        (tw, th), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, thick)
     org = (max(2, round(6 * scale)), max(th + 2, round(6 * scale) + th))
+    if corner == "bottom-left":
+        org = (org[0], max(th + 2, out.shape[0] - max(2, round(6 * scale)) - base))
     cv2.putText(out, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), thick + 2, cv2.LINE_AA)
     cv2.putText(
         out, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), thick, cv2.LINE_AA
@@ -127,6 +148,8 @@ def depth_panels(
     dilate: int = 2,
     vertical: bool = True,
     with_colorbar: bool = True,
+    panel_width: int | None = None,
+    caption: str | None = None,
 ) -> np.ndarray:
     """Overlay one or more depth maps on the same image, label them and stack the panels.
 
@@ -146,6 +169,12 @@ def depth_panels(
         Stack panels top to bottom (default) or left to right.
     with_colorbar : bool
         Add a labelled colour bar below.
+    panel_width : int, optional
+        Shrink (or grow) each overlaid panel to this width, pixels, keeping its aspect ratio,
+        before the labels are written: labels stay legible in small pictures (contact-sheet
+        tiles). Points are drawn (``dilate``) at full resolution first.
+    caption : str, optional
+        Text written once in the bottom-left corner of the panels (a frame key).
 
     Returns
     -------
@@ -156,6 +185,8 @@ def depth_panels(
         raise ParameterError(f"{len(labels)} label(s) for {len(depths)} depth map(s)")
     check_positive(max_depth, "max_depth")
     check_int_range(dilate, "dilate", low=0)
+    if panel_width is not None:
+        panel_width = check_int_range(panel_width, "panel_width", low=8)
     first = np.asarray(depths[0])
     check_shape(first, "(H, W)", "depths[0]")
     for i, d in enumerate(depths[1:], start=1):
@@ -175,10 +206,127 @@ def depth_panels(
         panel = overlay_depth(
             image, np.asarray(d, dtype=np.float32), max_depth=max_depth, dilate=int(dilate), dim=dim
         )
+        if panel_width is not None and panel_width != panel.shape[1]:
+            panel = _resize(
+                panel, panel_width, max(1, round(panel.shape[0] * panel_width / panel.shape[1]))
+            )
         if labels is not None:
-            panel = label_panel(panel, labels[i])
+            # small panels (a sheet's tile): the labels as large as the tile's caption
+            scale = None
+            if panel_width is not None:
+                scale = _font_scale(panel.shape[0] * (len(depths) if vertical else 1))
+            panel = label_panel(panel, labels[i], scale=scale)
         panels.append(panel)
     out = side_by_side(panels, vertical=vertical) if len(panels) > 1 else panels[0]
+    if caption:
+        out = label_panel(out, caption, corner="bottom-left")
     if with_colorbar and out.shape[1] >= 64:
         out = side_by_side([out, colorbar(out.shape[1], max_depth=max_depth)], vertical=True)
     return out
+
+
+def _resize(rgb: np.ndarray, width: int, height: int) -> np.ndarray:
+    import cv2
+
+    if (rgb.shape[1], rgb.shape[0]) == (width, height):
+        return rgb
+    shrink = width <= rgb.shape[1] and height <= rgb.shape[0]
+    return cv2.resize(
+        rgb, (width, height), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR
+    )
+
+
+def fit_picture(rgb: np.ndarray, size: tuple[int, int], *, background: int = 255) -> np.ndarray:
+    """``rgb`` scaled to fit inside ``size`` (aspect ratio kept) and centred on a plain
+    background.
+
+    Parameters
+    ----------
+    rgb : (H, W, 3) uint8
+    size : (width, height), pixels
+    background : int
+        Grey level of the uncovered border (0..255).
+
+    Returns
+    -------
+    (height, width, 3) uint8
+        ``rgb`` itself (a copy) when it already has this size.
+    """
+    check_shape(np.asarray(rgb), "(H, W, 3)", "rgb", nonempty=True)
+    check_dtype(np.asarray(rgb), "rgb", (np.uint8,))
+    w = check_int_range(size[0], "width", low=1)
+    h = check_int_range(size[1], "height", low=1)
+    check_int_range(background, "background", low=0, high=255)
+    src = np.asarray(rgb)
+    if (src.shape[1], src.shape[0]) == (w, h):
+        return src.copy()
+    f = min(w / src.shape[1], h / src.shape[0])
+    nw = min(w, max(1, round(src.shape[1] * f)))
+    nh = min(h, max(1, round(src.shape[0] * f)))
+    out = np.full((h, w, 3), background, np.uint8)
+    y0, x0 = (h - nh) // 2, (w - nw) // 2
+    out[y0 : y0 + nh, x0 : x0 + nw] = _resize(src, nw, nh)
+    return out
+
+
+def contact_sheet(
+    tiles: Sequence[np.ndarray],
+    labels: Sequence[str] | None = None,
+    *,
+    grid: tuple[int, int] = (4, 3),
+    tile_size: tuple[int, int] | None = None,
+    margin: int = 2,
+    background: int = 255,
+) -> np.ndarray:
+    """One page of a contact sheet: ``tiles`` in a ``grid`` of equal cells, row by row, each
+    with its label written once (bottom-left corner of the cell).
+
+    Parameters
+    ----------
+    tiles : sequence of (h, w, 3) uint8
+        At most ``cols * rows`` pictures (fewer: the remaining cells stay blank). Each is
+        fitted into its cell less ``margin`` on every side (:func:`fit_picture`, aspect
+        ratio kept).
+    labels : sequence of str, optional
+        One per tile (a frame key); ``""`` for none.
+    grid : (cols, rows)
+        Cells across and down.
+    tile_size : (width, height), optional
+        Size of one cell, pixels (default: the largest tile plus the margins).
+    margin : int, pixels
+        Background around each tile inside its cell (separates neighbours).
+    background : int
+        Grey level of margins and blank cells.
+
+    Returns
+    -------
+    (rows * height, cols * width, 3) uint8
+    """
+    check_nonempty(tiles, "tiles")
+    cols = check_int_range(grid[0], "grid columns", low=1)
+    rows = check_int_range(grid[1], "grid rows", low=1)
+    if len(tiles) > cols * rows:
+        raise ParameterError(f"{len(tiles)} tiles do not fit a {cols}x{rows} grid", param="grid")
+    if labels is not None and len(labels) != len(tiles):
+        raise ParameterError(f"{len(labels)} label(s) for {len(tiles)} tile(s)", param="labels")
+    margin = check_int_range(margin, "margin", low=0)
+    check_int_range(background, "background", low=0, high=255)
+    for i, tile in enumerate(tiles):
+        check_shape(np.asarray(tile), "(H, W, 3)", f"tiles[{i}]", nonempty=True)
+        check_dtype(np.asarray(tile), f"tiles[{i}]", (np.uint8,))
+    if tile_size is None:
+        tw = max(np.asarray(t).shape[1] for t in tiles) + 2 * margin
+        th = max(np.asarray(t).shape[0] for t in tiles) + 2 * margin
+    else:
+        tw = check_int_range(tile_size[0], "tile width", low=2 * margin + 1)
+        th = check_int_range(tile_size[1], "tile height", low=2 * margin + 1)
+    page = np.full((rows * th, cols * tw, 3), background, np.uint8)
+    inner = (tw - 2 * margin, th - 2 * margin)
+    for i, tile in enumerate(tiles):
+        cell = fit_picture(np.asarray(tile), inner, background=background)
+        if labels is not None and labels[i]:
+            cell = label_panel(cell, labels[i], corner="bottom-left")
+        r, c = divmod(i, cols)
+        y, x = r * th + margin, c * tw + margin
+        page[y : y + inner[1], x : x + inner[0]] = cell
+    return page
