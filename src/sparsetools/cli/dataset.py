@@ -15,7 +15,9 @@ from .options import (
     crop_option,
     deprecated,
     emit_summary,
+    filter_occluded_option,
     gt_option,
+    icp_min_range_option,
     json_option,
     nuscenes_version_option,
     output_dir_option,
@@ -244,7 +246,7 @@ def build(
 def _summary(summary, as_json, out_dir) -> None:
     """A build's summary; its stage timings (``stage_seconds``) with ``--json`` only."""
     emit_summary(summary, as_json=as_json, title=f"dataset written to {out_dir}",
-                 details=("stage_seconds",))  # fmt: skip
+                 details=("stage_seconds", "gt.methods", "gt.removed", "gt.icp"))  # fmt: skip
 
 
 @dataset.command("nuscenes")
@@ -264,6 +266,7 @@ def _summary(summary, as_json, out_dir) -> None:
     "--gt-sweeps", type=click.IntRange(min=1), default=1, show_default=True,
     help="Sweeps of the ground-truth sensor merged.",
 )  # fmt: skip
+@filter_occluded_option
 @click.option("--jbf", is_flag=True, help="Expand the radar with jbf-expand (confidence stored).")
 @click.option("--scenes", default=None, metavar="A,B,...", help="Only these scene names.")
 @click.option(
@@ -274,13 +277,15 @@ def _summary(summary, as_json, out_dir) -> None:
 @seed_option(help="Seed of the split assignment.")
 @batch_options
 def nuscenes(root, out_dir, nuscenes_version, camera, sensor, sweeps, resize, crop, gt_sensor,
-             gt_sweeps, jbf, scenes, night, splits, seed, batch, as_json):  # fmt: skip
+             gt_sweeps, filter_occluded, jbf, scenes, night, splits, seed, batch,
+             as_json):  # fmt: skip
     """nuScenes samples to a dataset: camera image, radar (or LiDAR) input, LiDAR truth.
 
     Per sample: the camera image, resized and cropped with its intrinsics adjusted, the
     sensor's sweeps projected into it (devkit filters; radar with its own ego pose), optionally
-    expanded by the joint bilateral filter, and LIDAR_TOP projected as ground truth. Samples
-    are frames of their scene: splits go by scene.
+    expanded by the joint bilateral filter, and LIDAR_TOP projected as ground truth
+    (--gt-sweeps N merged, --filter-occluded: without the points the camera cannot see; each
+    row records its gt_method). Samples are frames of their scene: splits go by scene.
 
     \b
     Example (the radar paper's setting: 800x450, top 100 rows cut):
@@ -292,7 +297,7 @@ def nuscenes(root, out_dir, nuscenes_version, camera, sensor, sweeps, resize, cr
     summary = build_nuscenes_dataset(
         root, out_dir, version=nuscenes_version, camera=camera, sensor=sensor, sweeps=sweeps,
         resize=resize, crop=crop, gt_sensor=None if gt_sensor.lower() == "none" else gt_sensor,
-        gt_sweeps=gt_sweeps, jbf=jbf,
+        gt_sweeps=gt_sweeps, filter_occluded=filter_occluded, jbf=jbf,
         scenes=tuple(s.strip() for s in scenes.split(",")) if scenes else None,
         night=night, split=splits, seed=seed, batch=batch,
     )  # fmt: skip
@@ -306,29 +311,53 @@ def nuscenes(root, out_dir, nuscenes_version, camera, sensor, sweeps, resize, cr
     "--beams", type=click.IntRange(min=1, max=64), default=4, show_default=True,
     help="Beams of the input (the full scan is the ground truth); 64: the full scan.",
 )  # fmt: skip
+@click.option(
+    "--gt-method", "gt_method", type=click.Choice(["scan", "accumulated"]), default="scan",
+    show_default=True,
+    help="Ground truth: the frame's scan projected, or KITTI's recipe: frames t-K..t+K merged "
+    "(oxts poses, else ICP), occlusion and moving-object tests, stereo check.",
+)  # fmt: skip
+@filter_occluded_option
+@click.option(
+    "--gt-neighbours", type=int, default=5, show_default=True, metavar="K",
+    help="--gt-method accumulated: merge frames t-K..t+K of the drive (0..100; KITTI: 5).",
+)  # fmt: skip
+@click.option(
+    "--stereo-check/--no-stereo-check", default=None,
+    help="--gt-method accumulated: drop points that disagree with SGBM stereo of image_02/image_03 "
+    "by more than 3 px and 5 % of disparity [default: on for frames whose image_03 exists].",
+)  # fmt: skip
+@icp_min_range_option
 @splits_option("dataset kitti-raw")
 @_split_file_option(help="Eigen / Eigen-Zhou split lists (repeat per split).")
 @seed_option(help="Seed of the split assignment.")
 @batch_options
-def kitti_raw(root, out_dir, beams, splits, split_files, seed, batch, as_json):
-    """KITTI raw drives to a dataset: image, N-beam projected LiDAR, full-scan ground truth.
+def kitti_raw(root, out_dir, beams, gt_method, filter_occluded, gt_neighbours, stereo_check,
+              icp_min_range, splits, split_files, seed, batch, as_json):  # fmt: skip
+    """KITTI raw drives to a dataset: image, N-beam projected LiDAR, LiDAR ground truth.
 
     ROOT is a drive, a date folder (all its drives) or a root of dates. Frames are keyed by
     drive, so frame names that repeat across drives stay distinct; splits go by drive, or by
-    Eigen split files.
+    Eigen split files. Ground truth: the full scan (--gt-method scan; --filter-occluded: without its
+    see-through points), or accumulated as KITTI's annotated maps (--gt-method accumulated, which
+    always filters occluded points); each row records its gt_method.
 
     \b
-    Example:
+    Examples:
       sparsetools dataset kitti-raw /data/kitti_raw -o out/kitti4 --beams 4 \\
           --split-file train=eigen_train_files.txt --split-file test=eigen_test_files.txt
+      sparsetools dataset kitti-raw /data/kitti_raw/2011_09_26 -o out/kitti_acc \\
+          --gt-method accumulated --icp-min-range 20
     """
     from ..pipeline.dataset.roots import build_kitti_raw_dataset
 
     if splits is not None and split_files:
         raise click.UsageError("give --splits or --split-file, not both")
     summary = build_kitti_raw_dataset(
-        root, out_dir, beams=None if beams == 64 else beams, split=splits,
-        split_files=split_files or None, seed=seed, batch=batch,
+        root, out_dir, beams=None if beams == 64 else beams, gt=gt_method,
+        filter_occluded=filter_occluded, gt_neighbours=gt_neighbours, stereo_check=stereo_check,
+        icp_min_range=icp_min_range, split=splits, split_files=split_files or None, seed=seed,
+        batch=batch,
     )  # fmt: skip
     _summary(summary, as_json, out_dir)
 

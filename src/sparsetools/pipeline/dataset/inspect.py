@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import os
 import stat
@@ -94,6 +95,10 @@ class DatasetInfo:
         Files the manifest names that are gone.
     split_method : dict, optional
         How the splits were assigned (the manifest's metadata).
+    gt_methods : dict of str -> int
+        Samples per ground-truth method (``generation_params["sample"]["gt_method"]`` of the
+        one-command routes: ``scan``, ``accumulated(...)``, ``sweeps(N)``...; ``unrecorded``
+        for samples with ground truth that do not say), most common first.
     """
 
     dataset: str
@@ -113,6 +118,7 @@ class DatasetInfo:
     total_bytes: int
     missing_files: int
     split_method: dict | None
+    gt_methods: dict[str, int] = dataclasses.field(default_factory=dict)
 
     def to_dict(self) -> dict:
         """The report as JSON values (``dataset info --json``)."""
@@ -132,6 +138,10 @@ class DatasetInfo:
                     f"  {name}",
                     f"{s.samples} sample(s), {s.sequences} sequence(s), {s.with_gt} with gt",
                 )
+            )
+        if self.gt_methods and set(self.gt_methods) != {"unrecorded"}:
+            lines.append(
+                ("gt methods", ", ".join(f"{k} ({v})" for k, v in self.gt_methods.items()))
             )
         lines += [
             ("image sizes", ", ".join(f"{k} ({v})" for k, v in self.image_sizes.items())),
@@ -236,7 +246,19 @@ def dataset_info(path: str | os.PathLike) -> DatasetInfo:
         total_bytes=int(sum(bytes_by_kind.values())),
         missing_files=missing,
         split_method=info.get("split"),
+        gt_methods=dict(
+            Counter(_gt_method(r) for r in rows if r.gt_path is not None).most_common()
+        ),
     )
+
+
+def _gt_method(row) -> str:
+    """A row's ``generation_params["sample"]["gt_method"]``, or ``unrecorded``."""
+    try:
+        method = json.loads(row.generation_params or "{}").get("sample", {}).get("gt_method")
+    except (ValueError, AttributeError):
+        method = None
+    return method if isinstance(method, str) else "unrecorded"
 
 
 def _unlisted_bytes(root: Path, counted: set[str]) -> dict[str, int]:
