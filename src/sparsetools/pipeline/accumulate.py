@@ -252,6 +252,9 @@ class AccumulateJob(BatchJob[AccumulateInput]):
 
     settings: AccumulateRunSettings = field(default_factory=AccumulateRunSettings)
     frames: tuple[Frame, ...] | None = None
+    #: How another command names the recorded settings in messages (``dataset kitti-raw``:
+    #: ``window`` is its ``--gt-neighbours``).
+    option_aliases: tuple[tuple[str, str], ...] = ()
 
     @property
     def icp(self) -> bool:
@@ -314,7 +317,7 @@ class AccumulateJob(BatchJob[AccumulateInput]):
         return self.settings.record()[0]
 
     def option_names(self) -> dict:
-        return self.settings.record()[1]
+        return {**self.settings.record()[1], **dict(self.option_aliases)}
 
     def before(self, out_dir: Path, batch: Batch) -> dict:
         """With ICP poses: register every consecutive pair first (its own resumable batch in

@@ -252,13 +252,23 @@ def dataset_info(path: str | os.PathLike) -> DatasetInfo:
     )
 
 
+#: Ground truth of a route's rows that record no ``gt_method``: ``dataset kitti-raw``'s default
+#: (and every version before 0.3) projects one scan, ``kitti-dc`` stores KITTI's annotation.
+_ROUTE_GT = {"kitti-raw": "scan", "kitti-dc": "annotated"}
+
+
 def _gt_method(row) -> str:
-    """A row's ``generation_params["sample"]["gt_method"]``, or ``unrecorded``."""
+    """A row's ``generation_params["sample"]["gt_method"]``; else what its route's ground
+    truth is (:data:`_ROUTE_GT`), else ``unrecorded``."""
     try:
-        method = json.loads(row.generation_params or "{}").get("sample", {}).get("gt_method")
+        params = json.loads(row.generation_params or "{}")
+        method = params.get("sample", {}).get("gt_method")
+        route = params.get("params", {}).get("route")
     except (ValueError, AttributeError):
-        method = None
-    return method if isinstance(method, str) else "unrecorded"
+        method = route = None
+    if isinstance(method, str):
+        return method
+    return _ROUTE_GT.get(route, "unrecorded") if isinstance(route, str) else "unrecorded"
 
 
 def _unlisted_bytes(root: Path, counted: set[str]) -> dict[str, int]:

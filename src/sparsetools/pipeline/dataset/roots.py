@@ -288,6 +288,14 @@ def build_kitti_raw_dataset(
             params["icp_min_range"] = icp_min_range
     if filter_occluded:
         params["gt_filter_occluded"] = True
+    # The default (one scan) writes the rows 0.2 wrote, byte for byte: no gt_method, which
+    # ``dataset info`` reads as ``scan`` for this route.
+    per_sample = None
+    if not plain_gt:
+        per_sample = {
+            k: (("gt_method", m),) + ((("gt_window", windows[k]),) if k in windows else ())
+            for k, m in methods.items()
+        }
     summary = build_dataset(
         out,
         rgb=root,
@@ -301,10 +309,7 @@ def build_kitti_raw_dataset(
         camera=camera,
         params=params,
         param_options=KITTI_RAW_OPTIONS,
-        sample_params={
-            k: (("gt_method", m),) + ((("gt_window", windows[k]),) if k in windows else ())
-            for k, m in methods.items()
-        },
+        sample_params=per_sample,
         batch=batch,
     )
     method = "scan+occlusion" if gt == "scan" and filter_occluded else gt
@@ -364,6 +369,7 @@ def _accumulated_gt(root, out: Path, *, neighbours, stereo, icp_min_range, camer
         [root], window=neighbours, accumulate=AccumulateSettings(occlude_own=True), icp=None,
         icp_settings=IcpSettings(min_range=icp_min_range), camera=camera,
     )  # fmt: skip
+    job = replace(job, option_aliases=(("window", "--gt-neighbours"),))
     acc_dir = _stage(out, "gt_accumulated")
     acc = run_job(job, frames, acc_dir, batch=batch, inputs=[root], desc="accumulate")
     source = job.settings.pose_source
