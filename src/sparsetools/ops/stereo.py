@@ -11,9 +11,9 @@ ground truth's camera (KITTI ``image_02``), right = the other (``image_03``); a 
 more than ``abs_px`` pixels AND more than ``rel`` of its own disparity: KITTI's own outlier
 rule for disparities (the stereo 2015 benchmark's D1 error: more than 3 px and more than
 5 %), the defaults. In depth this is a band that widens with distance as stereo's own error
-does (``dz ~ z^2 / (fx B) dd``): at fx = 721 px, B = 0.54 m, 3 px is +-0.2 m at 5 m, +-1.6 m
-at 15 m and about +-7 m at 30 m, beyond which the 5 % term is smaller than 3 px so the band
-stays at 3 px. A see-through point (background depth on a foreground object) or a moving
+does (``dz ~ z^2 / (fx B) dd``): at fx = 721 px, B = 0.533 m the 5 % term rules nearer than
+6.4 m (d > 60 px; +-0.25 m at 5 m), the 3 px term farther (about +-1.8 m at 15 m, -5.7 / +9.2 m
+at 30 m). A see-through point (background depth on a foreground object) or a moving
 object's trace differs by far more; SGBM's own mistakes on weak texture are usually within
 it. Where SGBM has no valid disparity (occluded in the right image, weak texture, the left
 ``num_disparities`` columns, points nearer than ``fx B / num_disparities``, speckles removed)

@@ -286,7 +286,7 @@ def build_kitti_raw_dataset(
                       stereo_check="auto" if stereo_check is None else stereo_check)  # fmt: skip
         if icp_min_range:
             params["icp_min_range"] = icp_min_range
-    if filter_occluded:
+    if filter_occluded and gt == "scan":  # accumulated always filters: not a setting there
         params["gt_filter_occluded"] = True
     # The default (one scan) writes the rows 0.2 wrote, byte for byte: no gt_method, which
     # ``dataset info`` reads as ``scan`` for this route.
