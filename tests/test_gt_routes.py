@@ -359,6 +359,36 @@ def test_stereo_check_in_the_route_with_a_synthetic_image_03(real_dir, tmp_path)
 
 
 @pytest.mark.real
+def test_oxts_poses_when_the_drive_has_them_and_the_maps_of_accumulate(real_dir, tmp_path):
+    """A drive with oxts packets (written here: 0.22 m north per frame, heading north): the
+    route takes the oxts poses (no ICP stage) and its ground truth is, byte for byte, what
+    ``sparsetools accumulate --filter-occluded`` makes of the same drive."""
+    date = _raw_tree(real_dir, tmp_path / "raw", range(4, 7))
+    oxts = date / DRIVE / "oxts" / "data"
+    oxts.mkdir(parents=True)
+    for i in range(4, 7):
+        packet = (
+            [49.011 + 2e-6 * i, 8.43, 112.0, 0.0, 0.0, np.pi / 2] + [0.0] * 19 + [4, 11, 6, 6, 6]
+        )
+        (oxts / f"{i:010d}.txt").write_text(" ".join(map(repr, packet)) + "\n")
+    ds = tmp_path / "ds"
+    s = summary("dataset", "kitti-raw", date, "-o", ds, "--gt-method", "accumulated",
+                "--gt-neighbours", "1")  # fmt: skip
+    assert s["gt"]["pose_source"] == "oxts" and "icp" not in s["gt"]
+    assert not (ds / ".sources" / "gt_accumulated" / "icp").exists()
+    assert {p["gt_method"] for p in sample_params(ds).values()} == {
+        "accumulated(t-1..t+1,poses=oxts,occlusion,consistency)"
+    }
+    acc = tmp_path / "acc"
+    assert (
+        run("accumulate", date, "-o", acc, "--neighbours", "1", "--filter-occluded").exit_code == 0
+    )
+    for r in rows(ds):
+        frame = r["id"].split("/")[-1]
+        assert (ds / r["gt_path"]).read_bytes() == (acc / DRIVE / f"{frame}.png").read_bytes()
+
+
+@pytest.mark.real
 @pytest.mark.parametrize(
     ("extra", "match"),
     [
