@@ -319,14 +319,16 @@ def build_kitti_raw_dataset(
 
 
 #: The vocabulary of ``generation_params["sample"]["gt_method"]`` (docs/dataset.md).
-GT_METHOD_DOC = """scan                      one LiDAR scan projected
+GT_METHOD_DOC = """scan                      one LiDAR scan projected (kitti-raw's default: not recorded,
+                          so its rows stay as 0.2 wrote them; dataset info reads them as scan)
 scan+occlusion            the same without its see-through points (--filter-occluded)
 accumulated(t-K..t+K,poses=P,occlusion,consistency[,stereo])
                           frames t-K..t+K merged (gt_window: the sample's own, t-A..t+B,
                           clipped at the drive's ends), poses oxts or icp, occlusion test on
                           every scan, moving-object test, stereo check
 sweeps(N)[+occlusion]     N LiDAR sweeps merged (nuScenes), optionally occlusion-filtered
-annotated(NAME)           a KITTI depth-completion map set (groundtruth: KITTI's annotation)
+annotated                 kitti-dc: the tree's map set, KITTI's annotation (not recorded; dataset
+                          info reads kitti-dc rows as annotated)
 """
 
 
