@@ -352,8 +352,11 @@ def test_info_and_verify_are_records_with_their_own_text(inputs, tmp_path):
         "image_sizes", "sources", "with_gt", "with_confidence", "with_intrinsics", "n_sparse",
         "density_percent", "bytes", "total_bytes", "missing_files", "split_method",
         "official_split",
+        "gt_methods",
     ]  # fmt: skip
     assert d["official_split"] is None  # fractions; an official split records its name
+    # dataset build records no gt_method: counted, not printed (tests/test_gt_routes.py)
+    assert d["gt_methods"] == {"unrecorded": 9} and "gt methods" not in str(info)
     assert d["splits"]["train"] == {"samples": 3, "sequences": 1, "with_gt": 3}
     assert d["image_sizes"] == {f"{W}x{H}": 9} and d["schema_version"] == 2
     assert set(d["n_sparse"]) == {"min", "median", "mean", "max"}

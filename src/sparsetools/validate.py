@@ -42,6 +42,7 @@ __all__ = [
     "check_flag",
     "check_instance",
     "check_int_range",
+    "check_multiple",
     "check_non_negative",
     "check_nonempty",
     "check_odd",
@@ -179,6 +180,16 @@ def check_odd(value, name: str, *, low: int = 1, high: int | None = None) -> int
     iv = check_int_range(value, name, low=low, high=high)
     if iv % 2 == 0:
         raise ParameterError(f"must be odd (a window centred on its pixel), got {iv}", param=name)
+    return iv
+
+
+def check_multiple(value, name: str, *, of: int, low: int | None = None,
+                   high: int | None = None) -> int:  # fmt: skip
+    """``value`` as an int in ``[low, high]`` that is a multiple of ``of`` (a matcher's
+    search range in whole blocks)."""
+    iv = check_int_range(value, name, low=low, high=high)
+    if iv % of:
+        raise ParameterError(f"must be a multiple of {of}, got {iv}", param=name)
     return iv
 
 

@@ -13,6 +13,7 @@ from .options import (
     deprecated,
     emit_summary,
     filter_occluded_option,
+    icp_min_range_option,
     image_option,
     image_size_option,
     max_depth_option,
@@ -62,14 +63,7 @@ from .options import (
 @click.option(
     "--icp", is_flag=True, help="Poses by Open3D point-to-plane ICP between consecutive scans."
 )
-@click.option(
-    "--icp-min-range",
-    type=float,
-    default=0.0,
-    show_default=True,
-    callback=non_negative,
-    help="ICP: leave out points nearer than this horizontal range, metres (dense traffic: 20).",
-)
+@icp_min_range_option
 @click.option(
     "--icp-voxel", type=float, default=0.2, show_default=True, callback=positive,
     help="ICP: finest voxel size, metres.",
@@ -169,10 +163,9 @@ def accumulate(
           --icp --icp-min-range 20 --neighbours 5 -o out/acc_kitti
       sparsetools accumulate velodyne/ --calib calib/ --poses poses.txt -o out/acc
     """
-    from ..io.sources.poses import accumulation_inputs
     from ..ops.accumulate import AccumulateSettings
     from ..pipeline import run_job
-    from ..pipeline.accumulate import AccumulateJob, AccumulateRunSettings, IcpSettings
+    from ..pipeline.accumulate import AccumulateRunSettings, IcpSettings, accumulation_job
 
     icp_given = [
         name
@@ -209,18 +202,12 @@ def accumulate(
     icp_settings = build(IcpSettings, min_range=icp_min_range, voxel=icp_voxel,
                          max_distance=icp_max_distance)  # fmt: skip
     build(AccumulateRunSettings, window=neighbours)  # the range of K, before any input is read
-    inputs = accumulation_inputs(list(clouds), calib=calib, image=image, poses=poses,
-                                 poses_frame=poses_frame, icp=icp, mask=mask)  # fmt: skip
-    settings = AccumulateRunSettings(
-        window=neighbours,
-        pose_source=inputs.pose_source,
-        poses_frame=poses_frame,
-        mask=mask is not None,
+    job, frames = accumulation_job(
+        list(clouds), window=neighbours, accumulate=geometry, icp=icp, icp_settings=icp_settings,
+        calib=calib, image=image, poses=poses, poses_frame=poses_frame, mask=mask,
         image_size=image_size,
-        icp=icp_settings,
-        accumulate=geometry,
-    )
-    summary = run_job(AccumulateJob(settings), inputs.frames, out_dir, batch=batch,
+    )  # fmt: skip
+    summary = run_job(job, frames, out_dir, batch=batch,
                       inputs=[*clouds, calib, image, poses, mask])  # fmt: skip
     emit_summary(summary, as_json=as_json, title=f"accumulated depth maps in {out_dir}",
                  details=PER_FRAME)  # fmt: skip

@@ -15,7 +15,9 @@ from .options import (
     crop_option,
     deprecated,
     emit_summary,
+    filter_occluded_option,
     gt_option,
+    icp_min_range_option,
     json_option,
     layout_option,
     named_split,
@@ -268,7 +270,7 @@ def _summary(summary, as_json, out_dir) -> None:
     """A build's summary; its stage timings (``stage_seconds``) and what each split list
     matched, drive by drive (``split_lists``), with ``--json`` only."""
     emit_summary(summary, as_json=as_json, title=f"dataset written to {out_dir}",
-                 details=("stage_seconds", "split_lists"))  # fmt: skip
+                 details=("stage_seconds", "split_lists", "gt.methods", "gt.removed", "gt.icp"))  # fmt: skip
 
 
 @dataset.command("nuscenes")
@@ -288,6 +290,7 @@ def _summary(summary, as_json, out_dir) -> None:
     "--gt-sweeps", type=click.IntRange(min=1), default=1, show_default=True,
     help="Sweeps of the ground-truth sensor merged.",
 )  # fmt: skip
+@filter_occluded_option
 @click.option("--jbf", is_flag=True, help="Expand the radar with jbf-expand (confidence stored).")
 @click.option("--scenes", default=None, metavar="A,B,...", help="Only these scene names.")
 @click.option(
@@ -300,15 +303,18 @@ def _summary(summary, as_json, out_dir) -> None:
 @seed_option(help="Seed of the split assignment.")
 @batch_options
 def nuscenes(root, out_dir, nuscenes_version, camera, sensor, sweeps, resize, crop, gt_sensor,
-             gt_sweeps, jbf, scenes, night, official_split, splits, split_files, seed, batch,
+             gt_sweeps, filter_occluded, jbf, scenes, night, official_split, splits, split_files,
+             seed, batch,
              as_json):  # fmt: skip
     """nuScenes samples to a dataset: camera image, radar (or LiDAR) input, LiDAR truth.
 
     Per sample: the camera image, resized and cropped with its intrinsics adjusted, the
     sensor's sweeps projected into it (devkit filters; radar with its own ego pose), optionally
-    expanded by the joint bilateral filter, and LIDAR_TOP projected as ground truth. Samples
-    are frames of their scene, and splits go by scene: fractions over scenes (--splits), the
-    official scene lists (--split official, --split mini) or your own (--split-file).
+    expanded by the joint bilateral filter, and LIDAR_TOP projected as ground truth
+    (--gt-sweeps N merged, --filter-occluded: without the points the camera cannot see; each
+    row records its gt_method). Samples are frames of their scene, and splits go by scene:
+    fractions over scenes (--splits), the official scene lists (--split official, --split
+    mini) or your own (--split-file).
 
     \b
     Example (the radar paper's setting: 800x450, top 100 rows cut):
@@ -320,7 +326,7 @@ def nuscenes(root, out_dir, nuscenes_version, camera, sensor, sweeps, resize, cr
     summary = build_nuscenes_dataset(
         root, out_dir, version=nuscenes_version, camera=camera, sensor=sensor, sweeps=sweeps,
         resize=resize, crop=crop, gt_sensor=None if gt_sensor.lower() == "none" else gt_sensor,
-        gt_sweeps=gt_sweeps, jbf=jbf,
+        gt_sweeps=gt_sweeps, filter_occluded=filter_occluded, jbf=jbf,
         scenes=tuple(s.strip() for s in scenes.split(",")) if scenes else None,
         night=night, split=splits, split_files=split_files or None,
         official_split=official_split, seed=seed, batch=batch,
@@ -335,31 +341,56 @@ def nuscenes(root, out_dir, nuscenes_version, camera, sensor, sweeps, resize, cr
     "--beams", type=click.IntRange(min=1, max=64), default=4, show_default=True,
     help="Beams of the input (the full scan is the ground truth); 64: the full scan.",
 )  # fmt: skip
+@click.option(
+    "--gt-method", "gt_method", type=click.Choice(["scan", "accumulated"]), default="scan",
+    show_default=True,
+    help="Ground truth: the frame's scan projected, or KITTI's recipe: frames t-K..t+K merged "
+    "(oxts poses, else ICP), occlusion and moving-object tests, stereo check.",
+)  # fmt: skip
+@filter_occluded_option
+@click.option(
+    "--gt-neighbours", type=int, default=5, show_default=True, metavar="K",
+    help="--gt-method accumulated: merge frames t-K..t+K of the drive (0..100; KITTI: 5).",
+)  # fmt: skip
+@click.option(
+    "--stereo-check/--no-stereo-check", default=None,
+    help="--gt-method accumulated: drop points that disagree with SGBM stereo of image_02/image_03 "
+    "by more than 3 px and 5 % of disparity [default: on for frames whose image_03 exists].",
+)  # fmt: skip
+@icp_min_range_option
 @splits_option(dataset="kitti")
 @_split_file_option(
     help="Your own split lists, Eigen form (<date>/<drive> <frame> <l|r>); repeat per split."
 )
 @seed_option(help="Seed of the split assignment.")
 @batch_options
-def kitti_raw(root, out_dir, beams, official_split, splits, split_files, seed, batch, as_json):
-    """KITTI raw drives to a dataset: image, N-beam projected LiDAR, full-scan ground truth.
+def kitti_raw(root, out_dir, beams, gt_method, filter_occluded, gt_neighbours, stereo_check,
+              icp_min_range, official_split, splits, split_files, seed, batch, as_json):  # fmt: skip
+    """KITTI raw drives to a dataset: image, N-beam projected LiDAR, LiDAR ground truth.
 
     ROOT is a drive, a date folder (all its drives) or a root of dates. Frames are keyed by
     drive, so frame names that repeat across drives stay distinct; splits go by drive, by the
     official lists (--split eigen: Eigen-Zhou train / val, Eigen test) or by your own lists
     (--split-file). The summary reports the listed frames the tree lacks, drive by drive.
+    Ground truth: the full scan (--gt-method scan; --filter-occluded: without its see-through
+    points), or accumulated as KITTI's annotated maps (--gt-method accumulated, which always
+    filters occluded points); each row records its gt_method.
 
     \b
     Examples:
       sparsetools dataset kitti-raw /data/kitti_raw -o out/kitti4 --beams 4 --split eigen
       sparsetools dataset kitti-raw /data/kitti_raw -o out/kitti4 --beams 4 \\
           --split-file train=my_train_files.txt --split-file test=my_test_files.txt
+      sparsetools dataset kitti-raw /data/kitti_raw/2011_09_26 -o out/kitti_acc \\
+          --gt-method accumulated --icp-min-range 20
     """
     from ..pipeline.dataset.roots import build_kitti_raw_dataset
 
     summary = build_kitti_raw_dataset(
-        root, out_dir, beams=None if beams == 64 else beams, split=splits,
-        split_files=split_files or None, official_split=official_split, seed=seed,
+        root, out_dir, beams=None if beams == 64 else beams, gt=gt_method,
+        filter_occluded=filter_occluded, gt_neighbours=gt_neighbours, stereo_check=stereo_check,
+        icp_min_range=icp_min_range, split=splits, split_files=split_files or None,
+        official_split=official_split, seed=seed,
         batch=batch,
     )  # fmt: skip
     _summary(summary, as_json, out_dir)

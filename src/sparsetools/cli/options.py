@@ -560,6 +560,18 @@ def pixel_offset_option(f):
     )(f)
 
 
+def icp_min_range_option(f):
+    """``--icp-min-range``: ICP leaves out the near field (accumulate, dataset kitti-raw)."""
+    return click.option(
+        "--icp-min-range",
+        type=float,
+        default=0.0,
+        show_default=True,
+        callback=non_negative,
+        help="ICP: leave out points nearer than this horizontal range, metres (dense traffic: 20).",
+    )(f)
+
+
 def filter_occluded_option(f):
     """``--filter-occluded``: drop the points the camera cannot see (ops.occlusion)."""
     return click.option(

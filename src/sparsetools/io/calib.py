@@ -33,6 +33,7 @@ __all__ = [
     "read_key_value_file",
     "read_kitti_object_calib",
     "read_kitti_raw_calib",
+    "read_kitti_stereo_rig",
     "write_json_calib",
     "write_kitti_object_calib",
 ]
@@ -191,6 +192,46 @@ def read_kitti_raw_calib(folder: str | os.PathLike, *, camera: int = 2) -> Calib
         source=str(folder),
         extra={"sensor": SENSOR_KITTI},
     )
+
+
+def read_kitti_stereo_rig(
+    folder: str | os.PathLike, *, left: int = 2, right: int = 3
+) -> tuple[float, float]:
+    """Focal length and baseline of a KITTI raw rectified stereo pair.
+
+    From ``calib_cam_to_cam.txt``: ``fx = P_rect_0{left}[0, 0]`` and ``baseline =
+    (P_rect_0{left}[0, 3] - P_rect_0{right}[0, 3]) / fx`` (the rectified projections differ
+    only by ``fx * t_x``); 0.532 m for cameras 2 and 3 of 2011_09_26.
+
+    Returns
+    -------
+    fx : float, pixels
+    baseline : float, metres (> 0: ``right`` is to the right of ``left``)
+
+    Raises
+    ------
+    CalibrationError
+        File or keys missing, different focal lengths, or a baseline that is not positive.
+    """
+    folder = Path(folder)
+    c2c = folder / "calib_cam_to_cam.txt" if folder.is_dir() else folder
+    if not c2c.is_file():
+        raise CalibrationError(f"{folder}: missing calib_cam_to_cam.txt (the stereo pair's)")
+    cam = read_key_value_file(c2c)
+    P_left = _matrix(cam, f"P_rect_0{left}", (3, 4), c2c)
+    P_right = _matrix(cam, f"P_rect_0{right}", (3, 4), c2c)
+    fx = float(P_left[0, 0])
+    if fx <= 0 or abs(P_right[0, 0] - fx) > 1e-6 * fx:
+        raise CalibrationError(
+            f"{c2c}: P_rect_0{left} and P_rect_0{right} are not one rectified pair (fx "
+            f"{P_left[0, 0]:g} and {P_right[0, 0]:g})"
+        )
+    baseline = float(P_left[0, 3] - P_right[0, 3]) / fx
+    if not baseline > 0:
+        raise CalibrationError(
+            f"{c2c}: camera {right} is not to the right of camera {left} (baseline {baseline:g} m)"
+        )
+    return fx, baseline
 
 
 def _as_array(d: dict, key: str, shape: tuple[int, int], path: Path) -> np.ndarray:

@@ -34,6 +34,7 @@ from ..calibration import Calibration
 from ..errors import FormatError, ParameterError, SparsetoolsError
 from ..io.atomic import atomic_path
 from ..io.sources import Frame, FrameKey
+from ..io.sources.poses import accumulation_inputs
 from ..ops.accumulate import AccumulateSettings
 from ..validate import check_int_range, check_non_negative, check_positive
 from .batch import Batch, RunSummary
@@ -50,6 +51,7 @@ __all__ = [
     "IcpPairJob",
     "IcpSettings",
     "IcpStats",
+    "accumulation_job",
     "sequences_of",
 ]
 
@@ -250,6 +252,9 @@ class AccumulateJob(BatchJob[AccumulateInput]):
 
     settings: AccumulateRunSettings = field(default_factory=AccumulateRunSettings)
     frames: tuple[Frame, ...] | None = None
+    #: How another command names the recorded settings in messages (``dataset kitti-raw``:
+    #: ``window`` is its ``--gt-neighbours``).
+    option_aliases: tuple[tuple[str, str], ...] = ()
 
     @property
     def icp(self) -> bool:
@@ -312,7 +317,7 @@ class AccumulateJob(BatchJob[AccumulateInput]):
         return self.settings.record()[0]
 
     def option_names(self) -> dict:
-        return self.settings.record()[1]
+        return {**self.settings.record()[1], **dict(self.option_aliases)}
 
     def before(self, out_dir: Path, batch: Batch) -> dict:
         """With ICP poses: register every consecutive pair first (its own resumable batch in
@@ -416,3 +421,57 @@ def sequences_of(frames: list[Frame]) -> dict[str, list[Frame]]:
         else:
             fs.sort(key=lambda f: _order(f.key.frame))
     return dict(sorted(groups.items()))
+
+
+def accumulation_job(
+    paths: list,
+    *,
+    window: int = 5,
+    accumulate: AccumulateSettings | None = None,
+    icp: bool | None = False,
+    icp_settings: IcpSettings | None = None,
+    calib=None,
+    image=None,
+    poses=None,
+    poses_frame: str = "auto",
+    mask=None,
+    image_size: tuple[int, int] | None = None,
+    camera: int = 2,
+) -> tuple[AccumulateJob, list[Frame]]:
+    """The job and frames of an accumulation of ``paths``: what ``sparsetools accumulate``
+    runs, and ``dataset kitti-raw --gt accumulated``.
+
+    Parameters
+    ----------
+    paths : list of path-like
+        What :func:`~sparsetools.io.sources.poses.accumulation_frames` reads.
+    window : int
+        K: frames t-K..t+K.
+    accumulate : AccumulateSettings, optional
+        The merge and its filters.
+    icp : bool or None
+        Poses by ICP between consecutive scans; None: the input's own poses when every frame
+        has one, else ICP (:func:`~sparsetools.io.sources.poses.accumulation_inputs`).
+    icp_settings : IcpSettings, optional
+    calib, image, poses, poses_frame, mask, image_size, camera
+        As the command's options.
+
+    Returns
+    -------
+    job : AccumulateJob
+        Its ``settings.pose_source`` says where the poses come from (``icp``, ``kitti-oxts``...).
+    frames : list of Frame
+    """
+    inputs = accumulation_inputs(list(paths), calib=calib, image=image, poses=poses,
+                                 poses_frame=poses_frame, icp=icp, mask=mask,
+                                 camera=camera)  # fmt: skip
+    settings = AccumulateRunSettings(
+        window=window,
+        pose_source=inputs.pose_source,
+        poses_frame=poses_frame,
+        mask=mask is not None,
+        image_size=image_size,
+        icp=IcpSettings() if icp_settings is None else icp_settings,
+        accumulate=AccumulateSettings() if accumulate is None else accumulate,
+    )
+    return AccumulateJob(settings), inputs.frames

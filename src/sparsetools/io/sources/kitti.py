@@ -42,6 +42,7 @@ __all__ = [
     "kitti_object_index",
     "kitti_raw_drives",
     "kitti_raw_index",
+    "kitti_raw_partner_image",
     "kitti_selection_maps_index",
     "kitti_val_selection_index",
     "read_kitti_timestamps",
@@ -130,6 +131,16 @@ def read_kitti_timestamps(path: Path) -> list[float] | None:
         except (IndexError, ValueError):
             return None
     return out
+
+
+def kitti_raw_partner_image(image: str | os.PathLike, *, camera: int = 3) -> Path | None:
+    """The same frame's image of another camera of a KITTI raw drive, or None when absent:
+    ``<drive>/image_02/data/<frame>.png`` -> ``<drive>/image_0{camera}/data/<frame>.png``."""
+    p = Path(image)
+    if p.parent.name != "data" or not re.fullmatch(r"image_0\d", p.parent.parent.name):
+        return None
+    cand = p.parents[2] / f"image_{camera:02d}" / "data" / p.name
+    return cand if cand.is_file() else None
 
 
 def kitti_raw_index(

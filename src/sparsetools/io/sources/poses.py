@@ -490,12 +490,13 @@ def accumulation_inputs(
     image: str | os.PathLike | None = None,
     poses: str | os.PathLike | None = None,
     poses_frame: str = "auto",
-    icp: bool = False,
+    icp: bool | None = False,
     mask: str | os.PathLike | None = None,
     camera: int = 2,
 ) -> AccumulationInputs:
     """:func:`accumulation_frames` with the poses attached (``icp``: none, they are registered
-    later) and the masks matched by frame.
+    later) and the masks matched by frame. ``icp=None``: the input's own poses when every
+    frame has one (KITTI raw oxts, a synthetic video, nuScenes), else ICP for all.
 
     Raises
     ------
@@ -512,6 +513,11 @@ def accumulation_inputs(
         raise ParameterError(
             f"no calibration for frame {no_calib[0].id} ({no_calib[0].cloud}): give --calib "
             "(a file, a KITTI raw date folder or per-frame files)", param="--calib")  # fmt: skip
+    if icp is None:
+        if poses is not None:
+            raise ParameterError("automatic poses (icp=None) take the input's own, not a file")
+        own = attach_poses(frames, None, camera=camera)
+        icp = bool(own.missing)
     if icp:
         if poses is not None:
             raise ParameterError("give --poses or --icp, not both", param="--icp")

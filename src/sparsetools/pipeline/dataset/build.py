@@ -14,6 +14,7 @@ A build runs in three steps, so that an interrupted run resumes and appending wo
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import time
@@ -473,6 +474,7 @@ def build_dataset(
     batch: Batch | None = None,
     frames_per_part: int = 1000,
     param_options: Mapping[str, str] | None = None,
+    sample_params: Mapping[str, tuple[tuple[str, object], ...]] | None = None,
 ) -> RunSummary:
     """Build (or extend) a dataset folder from per-frame input files.
 
@@ -536,6 +538,9 @@ def build_dataset(
     param_options : mapping of str -> str, optional
         How messages name the keys of ``params`` (a route's options: ``{"sweeps":
         "--sweeps"}``); default ``--params KEY``.
+    sample_params : mapping of sample id -> tuple of (name, value), optional
+        What varies per sample (a route's ``gt_method``), stored in that row's
+        ``generation_params["sample"]``.
 
     Returns
     -------
@@ -557,6 +562,11 @@ def build_dataset(
         settings, rgb=rgb, sparse=sparse, gt=gt, confidence=confidence, calib=calib,
         camera=camera,
     )  # fmt: skip
+    if sample_params:
+        found = dataclasses.replace(found, frames=[
+            dataclasses.replace(x, sample_params=tuple(sample_params.get(x.id, ())))
+            for x in found.frames
+        ])  # fmt: skip
     job = DatasetJob.for_inputs(settings, found, frames_per_part=frames_per_part,
                                 param_options=param_options)  # fmt: skip
     return run_job(job, found.frames, out_dir, batch=batch, inputs=found.roots, desc="dataset")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import os
 import stat
@@ -97,6 +98,10 @@ class DatasetInfo:
     official_split : str, optional
         The official split whose lists made the splits (``eigen``, ``official``...); None for
         other splits and for datasets made before sparsetools recorded it.
+    gt_methods : dict of str -> int
+        Samples per ground-truth method (``generation_params["sample"]["gt_method"]`` of the
+        one-command routes: ``scan``, ``accumulated(...)``, ``sweeps(N)``...; ``unrecorded``
+        for samples with ground truth that do not say), most common first.
     """
 
     dataset: str
@@ -117,6 +122,7 @@ class DatasetInfo:
     missing_files: int
     split_method: dict | None
     official_split: str | None = None
+    gt_methods: dict[str, int] = dataclasses.field(default_factory=dict)
 
     def to_dict(self) -> dict:
         """The report as JSON values (``dataset info --json``)."""
@@ -139,6 +145,10 @@ class DatasetInfo:
             )
         if isinstance(self.split_method, dict):
             lines.append(("split by", _split_text(self.split_method)))
+        if self.gt_methods and set(self.gt_methods) != {"unrecorded"}:
+            lines.append(
+                ("gt methods", ", ".join(f"{k} ({v})" for k, v in self.gt_methods.items()))
+            )
         lines += [
             ("image sizes", ", ".join(f"{k} ({v})" for k, v in self.image_sizes.items())),
             ("sources", ", ".join(f"{k} ({v})" for k, v in self.sources.items())),
@@ -266,7 +276,29 @@ def dataset_info(path: str | os.PathLike) -> DatasetInfo:
         official_split=str(split["name"])
         if isinstance(split, dict) and split.get("method") == "official" and "name" in split
         else None,
+        gt_methods=dict(
+            Counter(_gt_method(r) for r in rows if r.gt_path is not None).most_common()
+        ),
     )
+
+
+#: Ground truth of a route's rows that record no ``gt_method``: ``dataset kitti-raw``'s default
+#: (and every version before 0.3) projects one scan, ``kitti-dc`` stores KITTI's annotation.
+_ROUTE_GT = {"kitti-raw": "scan", "kitti-dc": "annotated"}
+
+
+def _gt_method(row) -> str:
+    """A row's ``generation_params["sample"]["gt_method"]``; else what its route's ground
+    truth is (:data:`_ROUTE_GT`), else ``unrecorded``."""
+    try:
+        params = json.loads(row.generation_params or "{}")
+        method = params.get("sample", {}).get("gt_method")
+        route = params.get("params", {}).get("route")
+    except (ValueError, AttributeError):
+        method = route = None
+    if isinstance(method, str):
+        return method
+    return _ROUTE_GT.get(route, "unrecorded") if isinstance(route, str) else "unrecorded"
 
 
 def _unlisted_bytes(root: Path, counted: set[str]) -> dict[str, int]:
