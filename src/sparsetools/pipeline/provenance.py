@@ -131,7 +131,8 @@ def _show(value) -> str:
 def settings_difference(
     old: Mapping, new: Mapping, names: Mapping[str, str] | None = None, *, _path: str = ""
 ) -> tuple[str, str, str] | None:
-    """(option, old value, new value) of the first setting that differs, or None.
+    """(option, old value, new value) of the first setting that differs, or None; a value
+    is None where that side does not record the setting at all.
 
     ``names`` maps a setting to the option that sets it; a setting inside a mapping setting
     is named by its dotted path (``params.sweeps``: the option of a route that records its
@@ -147,7 +148,10 @@ def settings_difference(
             inner = settings_difference(a, b, names, _path=f"{path}.")
             if inner is not None:
                 return inner
-        return _option_name(path, names), _show(a), _show(b)
+        # A setting one side does not record (an option left at its default that is recorded
+        # only when given) is shown as None: "made without --gt-method".
+        return (_option_name(path, names), None if key not in old else _show(a),
+                None if key not in new else _show(b))  # fmt: skip
     return None
 
 
@@ -191,7 +195,13 @@ def check_made_by(
     diff = settings_difference(record.settings, settings, names)
     if diff is not None:
         opt, a, b = diff
-        raise OutputError(f"{place} holds {noun} made with {opt} {a}, not {b}: {remedy}")
+        if a is None:
+            made = f"made without {opt}, not with {opt} {b}"
+        elif b is None:
+            made = f"made with {opt} {a}, not without it"
+        else:
+            made = f"made with {opt} {a}, not {b}"
+        raise OutputError(f"{place} holds {noun} {made}: {remedy}")
     if record.version not in COMPATIBLE_VERSIONS:
         raise OutputError(
             f"{place} holds {noun} made by sparsetools {record.version}, this is "
