@@ -127,12 +127,9 @@ def _save(path: Path, rgb: np.ndarray, limit_kb: int = 390) -> None:
 
 
 def _label(panel: np.ndarray, text: str) -> np.ndarray:
-    import cv2
+    from sparsetools.ops.text import put_outlined_text
 
-    out = panel.copy()
-    cv2.putText(out, text, (10, 36), cv2.FONT_HERSHEY_SIMPLEX, 1.1, (0, 0, 0), 5, cv2.LINE_AA)
-    cv2.putText(out, text, (10, 36), cv2.FONT_HERSHEY_SIMPLEX, 1.1, (255, 255, 255), 2, cv2.LINE_AA)
-    return out
+    return put_outlined_text(panel.copy(), text, (10, 36), scale=1.1, thickness=2, outline=2)
 
 
 def figures() -> None:

@@ -23,6 +23,7 @@ from ..validate import (
     check_shape,
 )
 from .colormap import colorize_depth, overlay_depth, side_by_side
+from .text import put_outlined_text
 
 __all__ = ["colorbar", "depth_panels", "label_panel"]
 
@@ -54,11 +55,8 @@ def label_panel(rgb: np.ndarray, text: str, *, scale: float | None = None) -> np
     thick = max(1, round(2 * scale))
     (_, th), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, thick)
     org = (max(2, round(6 * scale)), max(th + 2, round(6 * scale) + th))
-    cv2.putText(out, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), thick + 2, cv2.LINE_AA)
-    cv2.putText(
-        out, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), thick, cv2.LINE_AA
-    )
-    return out
+    # one drawing of the letters, the outline taken from it (ops/text.py says why)
+    return put_outlined_text(out, text, org, scale=scale, thickness=thick, outline=1)
 
 
 def colorbar(
