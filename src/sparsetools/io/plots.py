@@ -164,9 +164,14 @@ def _draw(ax, panel: Panel) -> None:
             else:
                 ax.bar(x, y, width=0.8 * step, bottom=bottom, color=colour, label=s.name or None)
                 bottom = y if bottom is None else bottom + y
+        # stacked bars make each top a sticky edge: a margin above the highest is set by hand
+        ax.use_sticky_edges = False
+        ax.margins(y=0.06)
+        ax.set_ylim(bottom=0)
         if panel.xticklabels and xs:
-            ax.set_xticks(xs[0], panel.xticklabels, rotation=45 if len(xs[0]) > 8 else 0,
-                          ha="right" if len(xs[0]) > 8 else "center", fontsize=8)  # fmt: skip
+            slanted = sum(len(t) for t in panel.xticklabels) > 60
+            ax.set_xticks(xs[0], panel.xticklabels, rotation=30 if slanted else 0,
+                          ha="right" if slanted else "center", fontsize=8)  # fmt: skip
     else:  # hist
         values = [np.asarray(s.y)[np.isfinite(s.y)] for s in series]
         if any(v.size for v in values):
