@@ -177,6 +177,8 @@ def _draw(ax, panel: Panel) -> None:
         if any(v.size for v in values):
             ax.hist([v for v in values], bins=panel.bins, label=[s.name for s in series],
                     color=list(COLOURS[: len(series)]))  # fmt: skip
+        ax.yaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.xaxis.set_major_locator(MaxNLocator(5))
     if _log_axis(panel):
         ax.set_yscale("log")
     ax.set_title(panel.title, fontsize=11)

@@ -8,14 +8,27 @@ writing them is the caller's business. :func:`eval_panels` are the plots of ``ev
 
 from __future__ import annotations
 
+import itertools
 import math
+from pathlib import Path
 
 import numpy as np
 
 from ..errors import ParameterError
 from ..io.plots import Panel, Series, render_panels
 
-__all__ = ["CURVES_PANEL", "curve_panels", "draw_curves", "prediction_picture"]
+__all__ = [
+    "CURVES_PANEL",
+    "EVAL_HISTOGRAMS",
+    "curve_panels",
+    "draw_curves",
+    "eval_panels",
+    "eval_plot_path",
+    "prediction_picture",
+]
+
+#: Per-image metrics whose histograms ``eval --plot`` draws (name, axis label).
+EVAL_HISTOGRAMS = (("rmse", "RMSE per image (m)"), ("abs_rel", "AbsRel per image"))
 
 #: Size of each of the two panels of ``curves.png`` (width, height), pixels.
 CURVES_PANEL = (440, 300)
@@ -72,6 +85,57 @@ def draw_curves(
     uint8 RGB (a logarithmic y axis where positive values span more than 10x)."""
     return render_panels(curve_panels(history, loss_name=loss_name, metric=metric),
                          columns=2, panel_size=CURVES_PANEL)  # fmt: skip
+
+
+def _none_nan(values) -> list[float]:
+    return [math.nan if v is None else float(v) for v in values]
+
+
+def eval_panels(result: dict) -> list[Panel]:
+    """The panels of ``eval --plot``: MAE and RMSE by ground-truth depth bin, and histograms
+    of per-image metrics (:data:`EVAL_HISTOGRAMS`), from the result as written to the JSON.
+
+    Parameters
+    ----------
+    result : dict
+        ``EvalResult.to_dict()``: ``depth_bins`` (``edges_m``, ``mae``, ``rmse``, ``pixels``)
+        and ``per_image`` rows.
+    """
+    bins = result.get("depth_bins")
+    if not bins:
+        raise ParameterError("no errors by depth bin in this result (evaluated without --plot)")
+    edges = bins["edges_m"]
+    centres = list(range(len(edges) - 1))  # one slot per bin, the bins named below
+    labels = [f"{a:g}-{b:g}" for a, b in itertools.pairwise(edges)]
+    panels = [
+        Panel(
+            "error by ground-truth depth (all pixels)",
+            "ground-truth depth (m)",
+            "error (m)",
+            (Series("MAE", centres, _none_nan(bins["mae"])),
+             Series("RMSE", centres, _none_nan(bins["rmse"]))),
+            kind="bar",
+            xticklabels=tuple(labels),
+        )
+    ]  # fmt: skip
+    rows = [r for r in result.get("per_image", []) if r.get("n_pixels", 0) > 0]
+    for name, label in EVAL_HISTOGRAMS:
+        values = [float(r[name]) for r in rows]
+        panels.append(
+            Panel(
+                f"{label.split(' per')[0]} of {len(values)} images",
+                label,
+                "images",
+                (Series("", range(len(values)), values),),
+                kind="hist",
+            )
+        )
+    return panels
+
+
+def eval_plot_path(json_path) -> Path:
+    """``eval --plot``'s PNG: beside the results, ``<results stem>.png``."""
+    return Path(json_path).with_suffix(".png")
 
 
 def prediction_picture(
