@@ -379,3 +379,28 @@ def test_label_is_drawn_once_with_its_outline_around_the_same_letters():
     edge = put_outlined_text(grey.copy(), "edge", (390, 5), scale=0.6)
     assert edge.shape == grey.shape
     assert np.array_equal(put_outlined_text(grey.copy(), "", (5, 20), scale=0.6), grey)
+
+
+def test_depth_bins_of_one_image_edges_and_empty():
+    from sparsetools.ops.metrics import aggregate_depth_bins, depth_bin_edges, depth_metrics
+
+    assert depth_bin_edges(80.0) == (0.0, 5.0, 10.0, 20.0, 30.0, 40.0, 50.0, 60.0, 70.0, 80.0)
+    assert depth_bin_edges(7.5) == (0.0, 5.0, 7.5) and depth_bin_edges(3.0) == (0.0, 3.0)
+    gt = np.array([[4.0, 5.0, 9.0, 0.0]])  # 5.0 lies on an edge: the upper bin [5, 10)
+    pred = np.array([[5.0, 7.0, 9.0, 3.0]])
+    m = depth_metrics(pred, gt, bin_edges=(0.0, 5.0, 10.0))
+    assert m["depth_bins"] == {
+        "pixels": [1, 2],
+        "abs_err_sum": [1.0, 2.0],
+        "sq_err_sum": [1.0, 4.0],
+    }
+    assert m["mae"] == pytest.approx(1.0)  # the same pixels as the metrics
+    empty = depth_metrics(pred, np.zeros_like(gt), bin_edges=(0.0, 5.0, 10.0))
+    assert empty["n_pixels"] == 0 and empty["depth_bins"]["pixels"] == [0, 0]
+    pooled = aggregate_depth_bins([m, empty, m], (0.0, 5.0, 10.0))
+    assert pooled["pixels"] == [2, 4] and pooled["mae"] == [1.0, 1.0]
+    assert pooled["rmse"] == [1.0, pytest.approx(math.sqrt(2.0))]
+    assert aggregate_depth_bins([empty], (0.0, 5.0, 10.0))["mae"] == [None, None]
+    for bad in ((5.0,), (0.0, 5.0, 5.0), (10.0, 0.0)):
+        with pytest.raises(ParameterError, match="bin_edges"):
+            depth_metrics(pred, gt, bin_edges=bad)
