@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import struct
+import subprocess
 import sys
 from pathlib import Path
 
@@ -404,3 +406,24 @@ def test_depth_bins_of_one_image_edges_and_empty():
     for bad in ((5.0,), (0.0, 5.0, 5.0), (10.0, 0.0)):
         with pytest.raises(ParameterError, match="bin_edges"):
             depth_metrics(pred, gt, bin_edges=bad)
+
+
+def test_nothing_imports_matplotlib_until_a_plot_is_drawn():
+    code = (
+        "import sys, sparsetools.cli.main, sparsetools.cli.beams, sparsetools.cli.accumulate, "
+        "sparsetools.cli.eval, sparsetools.io.plots, sparsetools.pipeline.plots, "
+        "sparsetools.train.plots, sparsetools.train.results; "
+        "print('matplotlib' in sys.modules)"
+    )
+    env = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "False"
+
+
+def test_train_without_matplotlib_is_one_line(tmp_path, no_matplotlib):
+    pytest.importorskip("torch")
+    (tmp_path / "ds").mkdir()
+    line = one_error_line(invoke("train", tmp_path / "ds", "-o", tmp_path / "run"))
+    assert line == "Error: train (its curves.png) needs matplotlib: pip install 'sparsetools[viz]'"
+    assert not (tmp_path / "run").exists()
