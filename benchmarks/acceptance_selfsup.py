@@ -236,7 +236,6 @@ def docs_pictures(runs: Path, datasets: dict[str, Path], img: Path) -> None:
 def method_picture(path: Path) -> None:
     """docs/img/selfsup_masks.png: the loss's parts on two synthetic triplets with true depth
     and poses -- a street with moving cars (seed 2) and a stopped ego car (seed 5)."""
-    import cv2
     import torch
 
     from sparsetools.io.image import write_image
