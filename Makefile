@@ -48,6 +48,7 @@ docs-pictures: setup
 	for s in docs/img/make_*.py; do $(PY) $$s || exit 1; done
 	$(PY) benchmarks/acceptance_accumulate.py --docs
 	$(PY) docs/img/make_plots.py
+	rm -rf docs/img/.sparsetools  # the records of viz -o docs/img/...: not part of the docs
 
 clean:
 	rm -rf out .pytest_cache build
