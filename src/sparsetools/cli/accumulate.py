@@ -281,6 +281,6 @@ def per_frame_lines(totals: dict) -> list[str]:
     return lines
 
 
-#: Per-frame (per-pair) tables of the summary: with ``--json`` only, so the text summary has
-#: the same few lines for 5 frames or 5,000.
+#: Per-frame (per-pair) tables of the summary: in ``--json`` only (``-v`` prints the removals
+#: per frame as lines of their own), so the totals have the same lines for 5 frames or 5,000.
 PER_FRAME = ("removed_per_frame", "clipped_window_frames", "icp.per_pair")
