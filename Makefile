@@ -41,5 +41,14 @@ sample-data: setup
 	$(VENV)/bin/sparsetools synth-scene -o sample_data/synthetic --seed 0 --frames 3 --overwrite
 	rm -rf sample_data/synthetic/.sparsetools  # the run's record is not part of the sample data
 
+# Every picture of docs/img/ from its script (a few minutes; needs ../shared/data/real). The
+# training and self-supervised pictures take hours: benchmarks/acceptance_train.py and
+# acceptance_selfsup.py (see docs/train.md, docs/selfsup.md), not run here.
+docs-pictures: setup
+	for s in docs/img/make_*.py; do $(PY) $$s || exit 1; done
+	$(PY) benchmarks/acceptance_accumulate.py --docs
+	$(PY) docs/img/make_plots.py
+	rm -rf docs/img/.sparsetools  # the records of viz -o docs/img/...: not part of the docs
+
 clean:
 	rm -rf out .pytest_cache build

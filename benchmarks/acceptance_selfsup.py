@@ -236,7 +236,6 @@ def docs_pictures(runs: Path, datasets: dict[str, Path], img: Path) -> None:
 def method_picture(path: Path) -> None:
     """docs/img/selfsup_masks.png: the loss's parts on two synthetic triplets with true depth
     and poses -- a street with moving cars (seed 2) and a stopped ego car (seed 5)."""
-    import cv2
     import torch
 
     from sparsetools.io.image import write_image
@@ -250,12 +249,9 @@ def method_picture(path: Path) -> None:
         return torch.from_numpy(img.transpose(2, 0, 1).astype(np.float64) / 255)[None]
 
     def label(img, text):
-        img = img.copy()
-        cv2.putText(img, text, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (0, 0, 0), 3, cv2.LINE_AA)
-        cv2.putText(
-            img, text, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (255, 255, 255), 1, cv2.LINE_AA
-        )
-        return img
+        from sparsetools.ops.text import put_outlined_text
+
+        return put_outlined_text(img.copy(), text, (4, 14), scale=0.42, thickness=1, outline=1)
 
     def error(e, valid):  # photometric error 0 (blue) .. 0.3 (red); grey: no depth (sky)
         out = colorize_depth(np.maximum(e, 1e-4), max_depth=0.3)

@@ -96,31 +96,7 @@ def library_map(scans, poses, calib, t, k, settings=None, mask=None):
     return res
 
 
-# -- the summary ----------------------------------------------------------------------------------
-
-
-def test_text_summary_has_the_same_few_lines_for_any_number_of_frames(video, tmp_path):
-    """Totals on stdout, one line each; the per-frame tables with --json only; -q changes
-    nothing on stdout."""
-    text = {}
-    for n, src in ((N_FRAMES, video / "seq_0000"), (2 * N_FRAMES, video)):
-        for quiet in ([], ["-q"]):
-            out = tmp_path / f"acc{n}{''.join(quiet)}"
-            r = CliRunner().invoke(cli, [*quiet, "accumulate", str(src), "-o", str(out),
-                                         "--neighbours", "1"])  # fmt: skip
-            assert r.exit_code == 0, r.stderr
-            text[n, bool(quiet)] = [
-                ln for ln in r.stdout.splitlines()[1:] if not ln.startswith(("seconds", "output"))
-            ]
-    assert text[N_FRAMES, True] == text[N_FRAMES, False]
-    lines = text[2 * N_FRAMES, True]
-    assert len(lines) == len(text[N_FRAMES, True]) <= 14, lines
-    assert not [ln for ln in lines if "seq_0000" in ln or "per frame" in ln], lines
-    removed = next(ln for ln in lines if ln.startswith("removed "))
-    assert "occluded" in removed and "behind_camera" in removed
-    s = summary_of(run("accumulate", video, "-o", tmp_path / "acc_json",
-                       "--neighbours", 1, "--json"))  # fmt: skip
-    assert len(s["removed_per_frame"]) == 2 * N_FRAMES and s["clipped_windows"] == 4
+# -- the summary: one line, -v per frame (tests/test_plots.py) ------------------------------------
 
 
 # -- exact poses ----------------------------------------------------------------------------------

@@ -28,9 +28,9 @@ SKY_ROWS = 100
 def _load(stem):
     from sparsetools.io.calib import load_calibration
     from sparsetools.io.image import read_image
-    from sparsetools.pipeline.beams import read_cloud_strict
+    from sparsetools.io.pointcloud import read_points
 
-    points = read_cloud_strict(KITTI / "velodyne" / f"{stem}.bin")
+    points = read_points(strict=True, path=KITTI / "velodyne" / f"{stem}.bin")
     image = read_image(KITTI / "image_2" / f"{stem}.png")
     calib = load_calibration(KITTI / "calib" / f"{stem}.txt").with_size(
         image.shape[1], image.shape[0]
@@ -39,7 +39,8 @@ def _load(stem):
 
 
 def make_profile() -> Path:
-    from sparsetools.ops.beams import fit_sensor_profile, scan_order_rings
+    from sparsetools.ops.beams import scan_order_rings
+    from sparsetools.ops.lidar_profile import fit_sensor_profile
 
     clouds, rings = [], []
     for stem in FRAMES:
@@ -69,7 +70,8 @@ def make_profile() -> Path:
 
 
 def make_pictures() -> None:
-    from sparsetools.ops.beams import load_sensor_profile, recover_rings, select_beams
+    from sparsetools.io.sensor_profile import load_sensor_profile
+    from sparsetools.ops.beams import recover_rings, select_beams
     from sparsetools.ops.colormap import overlay_depth, side_by_side
     from sparsetools.ops.projection import project_points
 
@@ -127,19 +129,16 @@ def _save(path: Path, rgb: np.ndarray, limit_kb: int = 390) -> None:
 
 
 def _label(panel: np.ndarray, text: str) -> np.ndarray:
-    import cv2
+    from sparsetools.ops.text import put_outlined_text
 
-    out = panel.copy()
-    cv2.putText(out, text, (10, 36), cv2.FONT_HERSHEY_SIMPLEX, 1.1, (0, 0, 0), 5, cv2.LINE_AA)
-    cv2.putText(out, text, (10, 36), cv2.FONT_HERSHEY_SIMPLEX, 1.1, (255, 255, 255), 2, cv2.LINE_AA)
-    return out
+    return put_outlined_text(panel.copy(), text, (10, 36), scale=1.1, thickness=2, outline=2)
 
 
 def figures() -> None:
+    from sparsetools.io.sensor_profile import load_sensor_profile
     from sparsetools.ops.beams import (
         elevation_rings,
         horizon_rings,
-        load_sensor_profile,
         recover_rings,
         ring_elevations,
         select_beams,

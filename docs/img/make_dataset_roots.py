@@ -23,10 +23,9 @@ IMG = Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT / "tests"))
 
 from _nuscenes_tree import build_tree  # noqa: E402
-
 from sparsetools.cli.main import cli  # noqa: E402
 from sparsetools.io.dataset_reader import DatasetReader  # noqa: E402
-from sparsetools.ops.colormap import colorize_depth, side_by_side  # noqa: E402
+from sparsetools.ops.colormap import side_by_side  # noqa: E402
 from sparsetools.ops.viz import colorbar, depth_panels, label_panel  # noqa: E402
 
 
@@ -43,14 +42,17 @@ def row(ds: Path, title: str, width: int) -> np.ndarray:
     r = reader.row(s["id"])
     sparse = depth_panels(s["rgb"], [s["sparse"]], dilate=2, with_colorbar=False)
     gt = depth_panels(s["rgb"], [s["gt"]], dilate=1, with_colorbar=False)
+    # Scaled to the row's width first, then labelled: one text size on every panel.
     panels = [
-        label_panel(s["rgb"], f"{title}: {s['id'][:40]}", scale=1.2),
-        label_panel(
-            sparse, f"{r['source']}: {r['n_sparse']} px ({100 * r['density']:.2f} %)", scale=1.2
-        ),
-        label_panel(gt, f"ground truth: {r['n_gt']} px", scale=1.2),
+        cv2.resize(p, (width, round(p.shape[0] * width / p.shape[1])))
+        for p in (s["rgb"], sparse, gt)
     ]
-    panels = [cv2.resize(p, (width, round(p.shape[0] * width / p.shape[1]))) for p in panels]
+    texts = [
+        f"{title}: {s['id'].split('/')[0]}/{s['id'].split('/')[-1][:10]}",
+        f"{r['source']}: {r['n_sparse']} px ({100 * r['density']:.2f} %)",
+        f"ground truth: {r['n_gt']} px",
+    ]
+    panels = [label_panel(p, t, scale=0.65) for p, t in zip(panels, texts, strict=True)]
     return side_by_side(panels, vertical=False)
 
 

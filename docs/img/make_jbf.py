@@ -28,6 +28,7 @@ from sparsetools.ops.colormap import overlay_depth, side_by_side
 from sparsetools.ops.intrinsic import intrinsic_error, mean_intrinsic_error
 from sparsetools.ops.jbf import height_extend, jbf_expand
 from sparsetools.ops.projection import project_points
+from sparsetools.ops.text import put_outlined_text
 
 HERE = Path(__file__).resolve().parent
 REAL = HERE.parent.parent.parent / "shared" / "data" / "real"
@@ -78,10 +79,7 @@ def expand_all(rgb, radar, fx, fy) -> dict:
 
 
 def label(panel: np.ndarray, text: str) -> np.ndarray:
-    out = panel.copy()
-    cv2.putText(out, text, (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (0, 0, 0), 4, cv2.LINE_AA)
-    cv2.putText(out, text, (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (255, 255, 255), 1, cv2.LINE_AA)
-    return out
+    return put_outlined_text(panel.copy(), text, (8, 24), scale=0.7, thickness=1, outline=2)
 
 
 def figure(rgb, maps, path: Path, *, scale: float = 0.5) -> None:

@@ -30,6 +30,7 @@ from click.testing import CliRunner
 
 from sparsetools.cli.main import cli
 from sparsetools.io.image import read_image
+from sparsetools.ops.text import put_outlined_text
 
 HERE = Path(__file__).resolve().parent
 SAMPLE = HERE.parent.parent / "sample_data"
@@ -66,11 +67,8 @@ def shrink(img: np.ndarray, width: int) -> np.ndarray:
 
 
 def label(img: np.ndarray, text: str) -> np.ndarray:
-    out = img.copy()
-    size = 0.7 if out.shape[1] > 500 else 0.45
-    for colour, thick in (((0, 0, 0), 4), ((255, 255, 255), 1)):
-        cv2.putText(out, text, (8, 24), cv2.FONT_HERSHEY_SIMPLEX, size, colour, thick, cv2.LINE_AA)
-    return out
+    size = 0.7 if img.shape[1] > 500 else 0.45
+    return put_outlined_text(img.copy(), text, (8, 24), scale=size, thickness=1, outline=2)
 
 
 def kitti(tmp: Path) -> None:

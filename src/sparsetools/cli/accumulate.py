@@ -21,7 +21,10 @@ from .options import (
     non_negative,
     output_dir_option,
     pixel_offset_option,
+    plot_option,
     positive,
+    root_flag,
+    verbose_option,
 )
 
 
@@ -111,6 +114,9 @@ from .options import (
     "--max-radius-px", type=click.IntRange(0, 64), default=8, show_default=True,
     help="Largest test window radius, pixels.",
 )  # fmt: skip
+@plot_option(help="Also write OUT/removals.png: the points removed per frame, by reason "
+             "(matplotlib: pip install 'sparsetools[viz]').")  # fmt: skip
+@verbose_option
 @deprecated("--window", "--neighbours", command="accumulate", dest="neighbours")
 @batch_options
 def accumulate(
@@ -139,6 +145,7 @@ def accumulate(
     footprint_m,
     min_radius_px,
     max_radius_px,
+    plot,
     batch,
     as_json,
 ):
@@ -151,14 +158,16 @@ def accumulate(
     nearer than what frame t's own scan measured around them (inconsistent: moving objects)
     or inside --mask. Writes OUT/<sequence>/<frame>.png (KITTI uint16), the calibration as
     OUT/calib/<sequence>/<frame>.json and, with --icp, each pair's pose in
-    OUT/icp/<sequence>/<frame>.json. The summary counts the removals by reason (per frame,
-    and ICP's fitness per pair, with --json).
+    OUT/icp/<sequence>/<frame>.json. The summary is one line (the totals with -v, and one
+    line per frame with the removals by reason; everything, ICP's fitness per pair too, with
+    --json); --plot draws the removals per frame as OUT/removals.png.
     A frame is recomputed when a scan of its window, its calibration or a pose file changed.
 
     \b
     Examples:
       sparsetools synth-scene -o out/video --video --static --sequences 1 --frames 12
       sparsetools accumulate out/video -o out/acc --neighbours 5
+      sparsetools accumulate out/video -o out/acc --neighbours 5 --plot -v
       sparsetools accumulate ../shared/data/real/kitti-raw-sequence-2011_09_26 \\
           --icp --icp-min-range 20 --neighbours 5 -o out/acc_kitti
       sparsetools accumulate velodyne/ --calib calib/ --poses poses.txt -o out/acc
@@ -186,6 +195,10 @@ def accumulate(
         )
     if poses is None and poses_frame != "auto":
         raise click.UsageError("--poses-frame goes with --poses")
+    if plot:
+        from ..io.plots import require_matplotlib
+
+        require_matplotlib("accumulate --plot")  # before any frame is computed
     geometry = build(
         AccumulateSettings,
         min_depth=min_depth,
@@ -209,10 +222,52 @@ def accumulate(
     )  # fmt: skip
     summary = run_job(job, frames, out_dir, batch=batch,
                       inputs=[*clouds, calib, image, poses, mask])  # fmt: skip
-    emit_summary(summary, as_json=as_json, title=f"accumulated depth maps in {out_dir}",
-                 details=PER_FRAME)  # fmt: skip
+    totals = summary.as_dict()
+    if plot:
+        from ..pipeline.plots import REMOVALS_PLOT, removal_panels, write_command_plot
+
+        written = write_command_plot(out_dir / REMOVALS_PLOT, removal_panels(totals),
+                                     command="accumulate --plot", overwrite=batch.overwrite,
+                                     columns=1, panel_size=(900, 360))  # fmt: skip
+        totals["plot"] = str(written)
+    if as_json or root_flag("verbose"):
+        if not as_json:
+            for line in per_frame_lines(totals):
+                click.echo(line)
+        emit_summary(totals, as_json=as_json, title=f"accumulated depth maps in {out_dir}",
+                     details=PER_FRAME)  # fmt: skip
+    else:
+        click.echo(summary_line(totals, out_dir))
+        if totals.get("failed"):  # the failed frames listed, exit 1
+            failed = {k: totals[k] for k in ("failed", "failures") if k in totals}
+            emit_summary(failed, as_json=False)
 
 
-#: Per-frame (per-pair) tables of the summary: with ``--json`` only, so the text summary has
-#: the same few lines for 5 frames or 5,000.
+def summary_line(totals: dict, out_dir) -> str:
+    """accumulate's summary without ``-v``: one line whatever the number of frames."""
+    removed = totals.get("removed") or {}
+    reasons = ", ".join(f"{r} {removed.get(r, 0)}" for r in ("occluded", "inconsistent", "masked"))
+    plot = f"; plot {totals['plot']}" if totals.get("plot") else ""
+    return (
+        f"accumulated {totals.get('processed', 0)} of {totals.get('frames', 0)} frames in "
+        f"{out_dir} ({totals.get('skipped_existing', 0)} up to date, {totals.get('failed', 0)} "
+        f"failed): density {totals.get('density_pct', 0.0):.4g} %, kept "
+        f"{totals.get('kept', 0)} of {totals.get('points', 0)} points, removed {reasons}{plot} "
+        "(-v: totals and per frame)"
+    )
+
+
+def per_frame_lines(totals: dict) -> list[str]:
+    """``-v``: one line per frame, the other scans' points removed by reason."""
+    clipped = totals.get("clipped_window_frames") or {}
+    lines = []
+    for fid, counts in (totals.get("removed_per_frame") or {}).items():
+        text = ", ".join(f"{k} {v}" for k, v in counts.items())
+        window = f" (window {clipped[fid]})" if fid in clipped else ""
+        lines.append(f"{fid}: removed {text}{window}")
+    return lines
+
+
+#: Per-frame (per-pair) tables of the summary: in ``--json`` only (``-v`` prints the removals
+#: per frame as lines of their own), so the totals have the same lines for 5 frames or 5,000.
 PER_FRAME = ("removed_per_frame", "clipped_window_frames", "icp.per_pair")

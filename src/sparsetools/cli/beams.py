@@ -17,6 +17,7 @@ from .options import (
     image_option,
     image_size_option,
     output_dir_option,
+    plot_option,
     size_wxh,
 )
 
@@ -149,6 +150,9 @@ def _non_negative_ints(ctx, param, value):
     is_flag=True,
     help="Only print each cloud's ring table (ring, points, median elevation).",
 )
+@plot_option(help="With --report: draw the ring tables as OUT/ring_report.png (points and median "
+             "elevations per ring, one line per cloud) and print one line per cloud "
+             "(pip install 'sparsetools[viz]').")  # fmt: skip
 @output_dir_option(required=False)
 @batch_options
 def beams(
@@ -167,6 +171,7 @@ def beams(
     fmt,
     far_range,
     report,
+    plot,
     out_dir,
     batch,
     as_json,
@@ -188,21 +193,33 @@ def beams(
           --calib kitti/calib --image kitti/image_2 -o out/plpp4
       sparsetools beams raw/2011_09_26/2011_09_26_drive_0001_sync --n 4 -o out/b4
       sparsetools beams --report kitti/velodyne/000001.bin
+      sparsetools beams --report --plot kitti/velodyne -o out/rings
     """
     from ..io.sources import cloud_frames
     from ..pipeline import run_job
     from ..pipeline.beams import BeamsJob, BeamsSettings, ring_report
 
     pl_width, pl_height = pl_grid
+    if plot and not report:
+        raise click.UsageError("--plot goes with --report")
     if report:
+        if plot:
+            if out_dir is None:
+                raise click.UsageError("--report --plot writes OUT/ring_report.png: give -o OUT")
+            from ..io.plots import require_matplotlib
+
+            require_matplotlib("beams --report --plot")
         settings = BeamsSettings(n=(1,), ring_method=ring_method, n_lasers=n_lasers,
                                  profile=profile, far_range=far_range)  # fmt: skip
         reports = ring_report(list(clouds), settings)
+        written = _plot_report(reports, out_dir, overwrite=batch.overwrite) if plot else None
         if as_json:
             click.echo(json.dumps([r.to_dict() for r in reports], indent=1))
         else:
-            for r in reports:
-                click.echo(r.format())
+            for r in reports:  # with --plot, the tables are in the picture (and in --json)
+                click.echo(r.format() if written is None else r.format().splitlines()[0])
+            if written is not None:
+                click.echo(f"plot: {written}")
         return
     if out_dir is None:
         raise click.UsageError("Missing option '-o' / '--out' (or use --report).")
@@ -229,3 +246,12 @@ def beams(
     summary = run_job(BeamsJob(settings), frames, out_dir, batch=batch,
                       inputs=[*clouds, calib, image])  # fmt: skip
     emit_summary(summary, as_json=as_json, title=f"beams written to {out_dir}")
+
+
+def _plot_report(reports, out_dir: Path, *, overwrite: bool) -> Path:
+    """``--report --plot``: the ring tables, as printed with ``--json``, drawn as one PNG."""
+    from ..pipeline.plots import RING_REPORT_PLOT, ring_report_panels, write_command_plot
+
+    panels = ring_report_panels([r.to_dict() for r in reports])
+    return write_command_plot(out_dir / RING_REPORT_PLOT, panels,
+                              command="beams --report --plot", overwrite=overwrite)  # fmt: skip

@@ -17,25 +17,32 @@ from .options import (
     min_depth_option,
     output_dir_option,
     overwrite_option,
+    plot_option,
     quiet_debug_options,
     split_option,
 )
 from .train import progress_wanted
 
 
-def _result_files(output: Path, target, checkpoint: Path | None, *, overwrite: bool) -> list:
+def _result_files(
+    output: Path, target, checkpoint: Path | None, *, overwrite: bool, plot: bool = False
+) -> list:
     """The JSON and CSV results as :class:`~sparsetools.pipeline.provenance.OutputFile`, checked
     before anything is evaluated: a file that ``eval`` did not write, or that holds the results
     of another evaluation (``target``: another checkpoint, dataset, split or prediction folder),
     is refused (one line naming it and ``--overwrite``); ``eval``'s own earlier results of the
     same target are replaced, whatever protocol options made them."""
     from ..pipeline.provenance import OutputFile
+    from ..train.plots import eval_plot_path
     from ..train.results import eval_result_paths
 
     sources = [] if checkpoint is None else [checkpoint]
+    paths = list(eval_result_paths(output))
+    if plot:  # --plot: the PNG beside them, under the same rule
+        paths.append(eval_plot_path(paths[0]))
     files = [
         OutputFile(p, "eval", target, sources, overwrite=overwrite, noun="the results of an eval")
-        for p in eval_result_paths(output)
+        for p in paths
     ]
     for f in files:
         f.up_to_date()  # raises for a file eval did not write, or wrote for another target
@@ -105,6 +112,9 @@ def _absolute(path: Path) -> str:
     help="Replace result files that eval did not write, or wrote for another evaluation."
 )
 @json_option(help="Print the results as JSON.")
+@plot_option(help="Also write <results>.png beside the results: MAE and RMSE by ground-truth "
+             "depth bin (also in the JSON as depth_bins) and histograms of per-image RMSE and "
+             "AbsRel (pip install 'sparsetools[viz]').")  # fmt: skip
 @quiet_debug_options
 def eval_(
     dataset,
@@ -122,6 +132,7 @@ def eval_(
     out_dir,
     overwrite,
     as_json,
+    plot,
 ):
     """Depth metrics per image, then averaged (AbsRel, SqRel, SqRel-KITTI, RMSE, RMSE log,
     SILog, delta1-3, MAE, iRMSE, iMAE) on pixels with min-depth < gt < max-depth.
@@ -140,6 +151,7 @@ def eval_(
       sparsetools eval --checkpoint out/run/best.pt out/ds --split test
       sparsetools eval --pred results/depth --gt out/scene/depth_gt -o results/metrics.json
       sparsetools eval --pred results/depth --gt kitti_dc/val --fill nearest
+      sparsetools eval --pred results/depth --gt out/scene/depth_gt -o results/m.json --plot
     """
     if checkpoint is not None and (pred_dir is not None or gt_dir is not None):
         raise click.UsageError("give either --checkpoint with DATASET, or --pred with --gt")
@@ -160,6 +172,15 @@ def eval_(
     except ParameterError as exc:
         raise click.BadParameter(exc.message, param_hint=exc.option) from None
     median = {"auto": None, "median": True, "none": False}[scaling]
+    bin_edges = None
+    if plot:
+        if checkpoint is None and out_dir is None:
+            raise click.UsageError("--plot writes beside the results: give -o with --pred")
+        from ..io.plots import require_matplotlib
+        from ..ops.metrics import depth_bin_edges
+
+        require_matplotlib("eval --plot")
+        bin_edges = depth_bin_edges(max_depth)
     if checkpoint is not None:
         if dataset is None:
             raise click.UsageError("--checkpoint needs the DATASET argument")
@@ -174,7 +195,7 @@ def eval_(
         target = EvalTarget(
             checkpoint=_absolute(ckpt_file), dataset=_absolute(dataset), split=split
         )
-        files = _result_files(output, target, ckpt_file, overwrite=overwrite)
+        files = _result_files(output, target, ckpt_file, overwrite=overwrite, plot=plot)
         result = evaluate_checkpoint(
             checkpoint,
             dataset,
@@ -186,6 +207,7 @@ def eval_(
             batch_size=batch_size,
             median_scaling=median,
             progress=progress_wanted(),
+            bin_edges=bin_edges,
         )
         title = f"{result.checkpoint} on {dataset} [{split}]"
     else:
@@ -197,7 +219,11 @@ def eval_(
 
         output = out_dir
         target = EvalTarget(pred=_absolute(pred_dir), gt=_absolute(gt_dir))
-        files = [] if output is None else _result_files(output, target, None, overwrite=overwrite)
+        files = (
+            []
+            if output is None
+            else _result_files(output, target, None, overwrite=overwrite, plot=plot)
+        )
         result = evaluate_folders(
             pred_dir,
             gt_dir,
@@ -207,11 +233,14 @@ def eval_(
             median_scaling=bool(median),
             fill=fill,
             progress=progress_wanted(),
+            bin_edges=bin_edges,
         )
         title = f"{pred_dir} against {gt_dir}"
     from ..train.results import format_eval_text, write_eval_results
 
     written = write_eval_results(result, output) if output is not None else []
+    if plot:
+        written.append(_write_plot(result, written[0]))
     for f in files:
         f.record()
     if as_json:
@@ -222,3 +251,13 @@ def eval_(
     click.echo(format_eval_text(result, title=title))
     for p in written:
         click.echo(f"written       {p}")
+
+
+def _write_plot(result, json_path: Path) -> Path:
+    """``--plot``: the result's depth bins and per-image metrics, as written to the JSON."""
+    from ..io.plots import write_plot
+    from ..train.plots import eval_panels, eval_plot_path
+
+    path = eval_plot_path(json_path)
+    write_plot(path, eval_panels(result.to_dict()), columns=3, panel_size=(440, 320))
+    return path

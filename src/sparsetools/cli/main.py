@@ -15,7 +15,7 @@ import click
 
 from .._version import __version__
 from ..errors import FrameError, UsageError
-from .options import quiet_debug_options
+from .options import quiet_debug_options, verbose_option
 
 # command name -> "module:function" under sparsetools.cli
 COMMANDS = {
@@ -90,10 +90,10 @@ class LazyGroup(click.Group):
 
 @click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, "--version", prog_name="sparsetools")
-@click.option("-v", "--verbose", count=True, help="More log output on stderr (-vv for debug).")
+@verbose_option
 @quiet_debug_options
 @click.pass_context
-def cli(ctx, verbose):
+def cli(ctx):
     """Turn camera + sparse depth sensor data into depth-estimation datasets.
 
     \b
@@ -105,6 +105,7 @@ def cli(ctx, verbose):
     """
     ctx.ensure_object(dict)
     quiet = ctx.obj.get("quiet", False)  # set by -q (before or after the subcommand)
+    verbose = ctx.obj.get("verbose", 0)  # set by -v (before the subcommand; accumulate after)
     level = (
         logging.ERROR if quiet else (logging.WARNING, logging.INFO, logging.DEBUG)[min(verbose, 2)]
     )

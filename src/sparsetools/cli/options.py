@@ -53,12 +53,15 @@ __all__ = [
     "output_dir_option",
     "overwrite_option",
     "pair",
+    "plot_option",
     "positive",
     "quiet_debug_options",
     "resize_option",
+    "root_flag",
     "seed_option",
     "size_metres",
     "size_wxh",
+    "verbose_option",
     "video_option",
     "warn_deprecated",
 ]
@@ -334,6 +337,41 @@ def quiet_debug_options(f):
         callback=_set_quiet,
         help="Only errors on stderr; no progress bar.",
     )(f)
+
+
+def _set_verbose(ctx, param, value):
+    if value:
+        root = ctx.find_root()
+        root.ensure_object(dict)
+        root.obj["verbose"] = max(int(root.obj.get("verbose", 0)), int(value))
+        if not root.obj.get("quiet"):
+            level = logging.INFO if root.obj["verbose"] == 1 else logging.DEBUG
+            logging.getLogger().setLevel(level)
+    return value
+
+
+def verbose_option(f):
+    """``-v/--verbose`` (a count): before the subcommand, and after it where a command has
+    per-frame lines to print (``accumulate``). Read with :func:`root_flag` ``("verbose")``."""
+    return click.option(
+        "-v",
+        "--verbose",
+        count=True,
+        expose_value=False,
+        is_eager=True,
+        callback=_set_verbose,
+        help="More output: log lines on stderr (-vv: debug), and one line per frame on stdout "
+        "where a command has them.",
+    )(f)
+
+
+def plot_option(f=None, *, help: str):
+    """``--plot``: also draw the command's report as a PNG (matplotlib, the ``viz`` extra)."""
+
+    def deco(fn):
+        return click.option("--plot", is_flag=True, help=help)(fn)
+
+    return deco(f) if f is not None else deco
 
 
 def root_flag(name: str) -> bool:

@@ -365,9 +365,11 @@ def train(ctx, dataset, out_dir, resume, as_json, self_supervised, **options):
     """
     from click.core import ParameterSource
 
+    from ..io.plots import require_matplotlib
     from ..train._torch_required import require_torch
 
     require_torch("train")
+    require_matplotlib("train (its curves.png)")
     from ..train.config import SelfSupSettings, TrainConfig
     from ..train.loop import train as run_training
 

@@ -44,7 +44,9 @@ from ..validate import (
 
 __all__ = [
     "METRIC_NAMES",
+    "aggregate_depth_bins",
     "aggregate_metrics",
+    "depth_bin_edges",
     "depth_metrics",
     "evaluated_mask",
     "format_metrics_table",
@@ -118,6 +120,7 @@ def depth_metrics(
     max_depth: float = 80.0,
     garg_crop: bool = False,
     median_scaling: bool = False,
+    bin_edges: tuple[float, ...] | None = None,
 ) -> dict:
     """All depth metrics of one image.
 
@@ -136,12 +139,17 @@ def depth_metrics(
     median_scaling : bool
         Scale the prediction by ``median(gt) / median(pred)`` over the evaluated pixels
         (before clipping), for scale-ambiguous monocular methods. Never for depth completion.
+    bin_edges : (K + 1,) float, metres, optional
+        Also the errors of the same pixels by ground-truth depth bin ``[e_k, e_k+1)``:
+        ``depth_bins`` holds ``pixels``, ``abs_err_sum`` (m) and ``sq_err_sum`` (m^2), K each
+        (sums, so that :func:`aggregate_depth_bins` pools them over images).
 
     Returns
     -------
     dict
         One float per name of :data:`METRIC_NAMES` (NaN when no pixel is valid) and
-        ``n_pixels`` (int, evaluated pixels); with ``median_scaling`` also ``scale``.
+        ``n_pixels`` (int, evaluated pixels); with ``median_scaling`` also ``scale``; with
+        ``bin_edges`` also ``depth_bins``.
 
     Raises
     ------
@@ -165,11 +173,20 @@ def depth_metrics(
     p = pred[valid].astype(np.float64)
     n = int(g.size)
     out: dict = {}
+    if bin_edges is not None:
+        edges = np.asarray(bin_edges, np.float64)
+        check_shape(edges, "(K)", "bin_edges", nonempty=True)
+        if edges.size < 2 or np.any(np.diff(edges) <= 0):
+            raise ParameterError("bin_edges must be at least two increasing depths")
     if n == 0:
         out = dict.fromkeys(METRIC_NAMES, math.nan)
         out["n_pixels"] = 0
         if median_scaling:
             out["scale"] = math.nan
+        if bin_edges is not None:
+            zeros = [0] * (edges.size - 1)
+            out["depth_bins"] = {"pixels": zeros, "abs_err_sum": [0.0] * len(zeros),
+                                 "sq_err_sum": [0.0] * len(zeros)}  # fmt: skip
         return out
     bad = int(np.count_nonzero(np.isnan(p)))
     if bad:
@@ -208,7 +225,19 @@ def depth_metrics(
         imae=float(np.mean(np.abs(inv_err))),
         n_pixels=n,
     )
-    return {k: out[k] for k in (*METRIC_NAMES, "n_pixels", *(("scale",) if median_scaling else ()))}
+    keys = (*METRIC_NAMES, "n_pixels", *(("scale",) if median_scaling else ()))
+    result = {k: out[k] for k in keys}
+    if bin_edges is not None:
+        k = edges.size - 1
+        which = np.searchsorted(edges, g, side="right") - 1  # bin [e_k, e_k+1) of each pixel
+        inside = (which >= 0) & (which < k)
+        which = which[inside]
+        result["depth_bins"] = {
+            "pixels": np.bincount(which, minlength=k).tolist(),
+            "abs_err_sum": np.bincount(which, abs_err[inside], minlength=k).tolist(),
+            "sq_err_sum": np.bincount(which, sq_err[inside], minlength=k).tolist(),
+        }
+    return result
 
 
 def aggregate_metrics(per_image: Iterable[Mapping]) -> dict:
@@ -242,6 +271,52 @@ def aggregate_metrics(per_image: Iterable[Mapping]) -> dict:
     out["n_empty"] = len(rows) - len(used)
     out["n_pixels"] = int(sum(int(r["n_pixels"]) for r in used))
     return out
+
+
+def depth_bin_edges(max_depth: float = 80.0, *, step: float = 10.0) -> tuple[float, ...]:
+    """Ground-truth depth bins of ``eval --plot``: 0-5, 5-10 m, then ``step`` m up to
+    ``max_depth`` (the last bin ends there), metres."""
+    check_positive(max_depth, "max_depth")
+    check_positive(step, "step")
+    edges = [e for e in (0.0, 5.0) if e < max_depth]
+    edges += [float(e) for e in np.arange(10.0, max_depth, step)]
+    return (*edges, float(max_depth))
+
+
+def aggregate_depth_bins(per_image: Iterable[Mapping], bin_edges) -> dict:
+    """Errors by ground-truth depth bin pooled over images (every evaluated pixel counts once).
+
+    Parameters
+    ----------
+    per_image : iterable of dict
+        Results of :func:`depth_metrics` with ``bin_edges`` (their ``depth_bins``).
+    bin_edges : (K + 1,) float, metres
+
+    Returns
+    -------
+    dict
+        ``edges_m`` (K + 1), and per bin ``pixels``, ``mae`` (m) and ``rmse`` (m) (None for a
+        bin without pixels: the dict is JSON as it is).
+    """
+    edges = [float(e) for e in bin_edges]
+    k = len(edges) - 1
+    pixels = np.zeros(k, np.int64)
+    abs_sum = np.zeros(k)
+    sq_sum = np.zeros(k)
+    for r in per_image:
+        b = r["depth_bins"]
+        pixels += np.asarray(b["pixels"], np.int64)
+        abs_sum += np.asarray(b["abs_err_sum"], np.float64)
+        sq_sum += np.asarray(b["sq_err_sum"], np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mae = np.where(pixels > 0, abs_sum / pixels, np.nan)
+        rmse = np.where(pixels > 0, np.sqrt(sq_sum / pixels), np.nan)
+
+    def listed(a):
+        return [float(v) if np.isfinite(v) else None for v in a]
+
+    return {"edges_m": edges, "pixels": pixels.tolist(), "mae": listed(mae),
+            "rmse": listed(rmse)}  # fmt: skip
 
 
 _UNITS = {

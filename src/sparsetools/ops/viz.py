@@ -24,6 +24,7 @@ from ..validate import (
     check_shape,
 )
 from .colormap import colorize_depth, overlay_depth, side_by_side
+from .text import put_outlined_text
 
 __all__ = ["colorbar", "contact_sheet", "depth_panels", "fit_picture", "label_panel"]
 
@@ -52,8 +53,8 @@ def label_panel(
 
     Notes
     -----
-    The text is drawn at one position: a black outline (thicker stroke) and the white text
-    over it, so it reads on any background.
+    The letters are drawn once, white, with a black outline taken from those same letters
+    (:func:`sparsetools.ops.text.put_outlined_text`), so the label reads on any background.
     """
     import cv2
 
@@ -75,11 +76,8 @@ def label_panel(
     org = (max(2, round(6 * scale)), max(th + 2, round(6 * scale) + th))
     if corner == "bottom-left":
         org = (org[0], max(th + 2, out.shape[0] - max(2, round(6 * scale)) - base))
-    cv2.putText(out, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), thick + 2, cv2.LINE_AA)
-    cv2.putText(
-        out, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), thick, cv2.LINE_AA
-    )
-    return out
+    # one drawing of the letters, the outline taken from it (ops/text.py says why)
+    return put_outlined_text(out, text, org, scale=scale, thickness=thick, outline=1)
 
 
 def colorbar(

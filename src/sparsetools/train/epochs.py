@@ -27,6 +27,7 @@ from typing import Any, Protocol, runtime_checkable
 import torch
 
 from ..errors import ParameterError
+from ..io.plots import require_matplotlib
 from .checkpoint import (
     BestRecord,
     Checkpoint,
@@ -367,6 +368,7 @@ def fit(
     ParameterError
         Mixed image sizes, images too small for a batch of one, a diverged loss.
     """
+    require_matplotlib("training (its curves.png)")  # before an epoch is spent, not after
     out = Path(config.out_dir)
     device = resolve_device(config.device)
     tiny = _tiny(config, task.train_set)

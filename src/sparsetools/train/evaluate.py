@@ -32,7 +32,13 @@ from .checkpoint import Checkpoint, load_checkpoint, model_from_checkpoint
 from .data import DepthDataset, collate
 from .losses import depth_loss
 from .model import DepthCompletionUNet
-from .results import EvalResult, evaluate_folders, format_eval_text, write_eval_results
+from .results import (
+    EvalResult,
+    evaluate_folders,
+    format_eval_text,
+    pool_depth_bins,
+    write_eval_results,
+)
 from .runtime import batches, make_loader, progress_bar, resolve_device, torch_settings
 
 __all__ = [
@@ -245,6 +251,7 @@ def evaluate_checkpoint(
     median_scaling: bool | None = None,
     pose: bool = True,
     progress: bool = False,
+    bin_edges: tuple[float, ...] | None = None,
 ) -> EvalResult:
     """Metrics of a trained model on one split of a dataset.
 
@@ -264,6 +271,8 @@ def evaluate_checkpoint(
     pose : bool
         Also evaluate the pose network of a self-supervised model when the split's manifest
         has true poses (``T_world_cam``).
+    bin_edges : (K + 1,) float, metres, optional
+        Also the errors by ground-truth depth bin (``depth_bins`` of the result).
 
     Returns
     -------
@@ -287,6 +296,7 @@ def evaluate_checkpoint(
                 "max_depth": max_depth,
                 "garg_crop": garg_crop,
                 "median_scaling": bool(median_scaling),
+                **({} if bin_edges is None else {"bin_edges": bin_edges}),
             },
             progress=progress,
         )
@@ -298,6 +308,7 @@ def evaluate_checkpoint(
             pose_accuracy = evaluate_pose(
                 pose_from_checkpoint(ckpt).to(dev), dataset, split=split, device=dev
             )
+    depth_bins = pool_depth_bins(result.per_image, bin_edges)
     return EvalResult(
         metrics=aggregate_metrics(result.per_image),
         per_image=result.per_image,
@@ -314,4 +325,5 @@ def evaluate_checkpoint(
         split=split,
         pose=pose_accuracy,
         run_id=ckpt.run_id,
+        depth_bins=depth_bins,
     )

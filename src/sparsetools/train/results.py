@@ -32,6 +32,7 @@ import numpy as np
 from ..errors import FormatError, ParameterError
 from ..ops.metrics import (
     METRIC_NAMES,
+    aggregate_depth_bins,
     aggregate_metrics,
     depth_metrics,
     evaluated_mask,
@@ -50,6 +51,7 @@ __all__ = [
     "eval_result_paths",
     "evaluate_folders",
     "format_eval_text",
+    "pool_depth_bins",
     "score_prediction",
     "write_eval_results",
 ]
@@ -99,6 +101,9 @@ class EvalResult:
     unmatched_predictions_first: list[str] | None = None
     #: ``eval --checkpoint``: the run id of the checkpoint (None: sparsetools 0.2.0)
     run_id: str | None = None
+    #: ``eval --plot``: errors by ground-truth depth bin over all images
+    #: (:func:`~sparsetools.ops.metrics.aggregate_depth_bins`)
+    depth_bins: dict | None = None
 
     def to_dict(self) -> dict:
         """JSON-ready dict (fields that do not apply are left out)."""
@@ -121,6 +126,7 @@ def score_prediction(
     max_depth: float = 80.0,
     garg_crop: bool = False,
     median_scaling: bool = False,
+    bin_edges: tuple[float, ...] | None = None,
 ) -> dict:
     """The metrics of one predicted depth map, its holes counted and scored as ``fill`` says.
 
@@ -137,7 +143,7 @@ def score_prediction(
         the value of the nearest pixel with a prediction (a map without any stays all holes,
         left out); ``min-depth``: holes are scored as ``min_depth``, the clipping of
         monodepth2's protocol.
-    min_depth, max_depth, garg_crop, median_scaling
+    min_depth, max_depth, garg_crop, median_scaling, bin_edges
         As :func:`~sparsetools.ops.metrics.depth_metrics`; median scaling uses the pixels
         scored (with ``min-depth``, the holes as 0).
 
@@ -154,6 +160,8 @@ def score_prediction(
     kw = dict(
         min_depth=min_depth, max_depth=max_depth, garg_crop=garg_crop, median_scaling=median_scaling
     )
+    if bin_edges is not None:
+        kw["bin_edges"] = bin_edges
     if pred.shape != gt.shape:  # depth_metrics' own message
         return depth_metrics(pred, gt, **kw)
     with np.errstate(invalid="ignore"):
@@ -233,6 +241,7 @@ def evaluate_folders(
     median_scaling: bool = False,
     fill: str = "none",
     progress: bool = False,
+    bin_edges: tuple[float, ...] | None = None,
 ) -> EvalResult:
     """Metrics of any method's predictions: depth files matched by frame.
 
@@ -250,6 +259,8 @@ def evaluate_folders(
     fill : {'none', 'nearest', 'min-depth'}
         How prediction holes are scored (:func:`score_prediction`); their count is in the
         result (``n_holes``, per image and in total).
+    bin_edges : (K + 1,) float, metres, optional
+        Also the errors by ground-truth depth bin (``depth_bins`` of the result).
 
     Raises
     ------
@@ -280,6 +291,7 @@ def evaluate_folders(
                 max_depth=max_depth,
                 garg_crop=garg_crop,
                 median_scaling=median_scaling,
+                bin_edges=bin_edges,
             )
             per_image.append({"id": frame_id, **m})
             bar.update(1)
@@ -290,6 +302,7 @@ def evaluate_folders(
             f"the prediction (0, NaN or infinite; {n_holes} pixels): nothing to evaluate "
             f"with --fill {fill}"
         )
+    depth_bins = pool_depth_bins(per_image, bin_edges)
     metrics = aggregate_metrics(per_image)
     metrics["n_holes"] = n_holes
     return EvalResult(
@@ -304,7 +317,17 @@ def evaluate_folders(
         unmatched_predictions=len(unmatched),
         unmatched_predictions_first=_names(unmatched),
         fill=fill,
+        depth_bins=depth_bins,
     )
+
+
+def pool_depth_bins(per_image: list[dict], bin_edges) -> dict | None:
+    """Take each row's ``depth_bins`` out (the per-image rows stay as without them) and pool
+    them over the images (:func:`~sparsetools.ops.metrics.aggregate_depth_bins`)."""
+    if bin_edges is None:
+        return None
+    bins = [r.pop("depth_bins") for r in per_image]
+    return aggregate_depth_bins([{"depth_bins": b} for b in bins], bin_edges)
 
 
 def format_eval_text(result: EvalResult, *, title: str = "") -> str:
