@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..._version import __version__
-from ...errors import OutputError, ParameterError
+from ...errors import FormatError, OutputError, ParameterError
 from ...io.dataset import MANIFEST_NAME, ManifestRow
 from ...validate import check_int_range
 from .inspect import DatasetInfo, VerifyReport, _human, dataset_info, verify_dataset
@@ -324,10 +324,17 @@ def _colour_bar(max_depth: float) -> str:
 
 
 def _figure(reader, row: ManifestRow, max_depth: float, extra: str = "") -> str:
-    t = thumbnail(reader, row, max_depth=max_depth)
+    """One thumbnail with its caption; a frame whose files cannot be read says so instead
+    (``verify`` lists why), so that a damaged dataset still gets its page."""
     caption = (f"<code>{_e(row.id)}</code><br />density {100 * row.density:.3g} %, "
                f"{row.n_sparse:,} points{extra}")  # fmt: skip
-    img = _img(t.data_uri(), alt=f"sparse depth over {row.id}", width=t.width, height=t.height)
+    try:
+        t = thumbnail(reader, row, max_depth=max_depth)
+    except (FormatError, OSError) as exc:
+        img = f'<p class="bad unreadable">cannot be drawn: {_e(exc)}</p>'
+    else:
+        img = _img(t.data_uri(), alt=f"sparse depth over {row.id}", width=t.width,
+                   height=t.height)  # fmt: skip
     return f'<figure data-id="{_e(row.id)}">{img}<figcaption>{caption}</figcaption></figure>'
 
 

@@ -140,22 +140,27 @@ def depth_samples(
     -------
     sparse, gt : (N,) float32, (M,) float32
     frames : int
-        Frames read.
+        Frames read (a frame whose files cannot be read is left out: ``verify`` reports it).
     """
     ordered = sorted(rows, key=lambda r: r.id)
     if len(ordered) > MAX_DEPTH_FRAMES:
         idx = np.linspace(0, len(ordered) - 1, MAX_DEPTH_FRAMES).round().astype(int)
         ordered = [ordered[i] for i in idx]
-    sparse, gt = [], []
+    sparse, gt, frames = [], [], 0
     for r in ordered:
-        _, _, d = reader.sparse_points(r.id)
+        try:
+            _, _, d = reader.sparse_points(r.id)
+            g = None
+            if r.gt_path is not None:
+                g = read_depth_file(reader.path(r.gt_path, what="gt_path"))
+        except (FormatError, OSError):
+            continue
+        frames += 1
         sparse.append(_strided(np.asarray(d, np.float32)))
-        if r.gt_path is not None:
-            g = read_depth_file(reader.path(r.gt_path, what="gt_path"))
-            g = g[np.isfinite(g) & (g > 0)]
-            gt.append(_strided(g.astype(np.float32)))
+        if g is not None:
+            gt.append(_strided(g[np.isfinite(g) & (g > 0)].astype(np.float32)))
     cat = lambda parts: np.concatenate(parts) if parts else np.zeros(0, np.float32)  # noqa: E731
-    return cat(sparse), cat(gt), len(ordered)
+    return cat(sparse), cat(gt), frames
 
 
 def colour_scale_max(values: np.ndarray) -> float:
