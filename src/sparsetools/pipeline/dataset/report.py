@@ -109,10 +109,14 @@ _CHECKS = (
         "depths; PNG and Parquet agree",
         (" row ", "disagree", "no sparse depth", ".parquet"),
     ),
-    ("every file decodable and of the manifest's image size",
-     ("cannot be decoded", "the manifest says", "bad image size")),  # fmt: skip
-    ("every file inside the dataset, present and readable",
-     ("is missing", "cannot be read", "outside", "link", "no such")),  # fmt: skip
+    (
+        "every file decodable and of the manifest's image size",
+        ("cannot be decoded", "the manifest says", "bad image size"),
+    ),
+    (
+        "every file inside the dataset, present and readable",
+        ("is missing", "cannot be read", "outside", "link", "no such"),
+    ),
 )
 #: The order the checks are listed in.
 _CHECK_ORDER = (5, 4, 1, 3, 2, 0)
@@ -312,7 +316,7 @@ def _colour_bar(max_depth: float) -> str:
     from ...ops.colormap import colorize_depth
 
     ramp = np.linspace(max_depth / 320, max_depth, 320, dtype=np.float32)[None, :].repeat(14, 0)
-    ok, buf = cv2.imencode(".png", colorize_depth(ramp, max_depth=max_depth)[:, :, ::-1])
+    _, buf = cv2.imencode(".png", colorize_depth(ramp, max_depth=max_depth)[:, :, ::-1])
     return (
         '<p class="meta">Sparse depth over the image (each point a 3x3 square at thumbnail '
         "size, the nearest on top), coloured from 0 m (blue) to "
@@ -409,7 +413,7 @@ def _verify_section(report: VerifyReport) -> str:
 def _eval_section(results: list[EvalResults], reader, rows_by_id, n: int, max_depth) -> str:
     parts = ['<h2 id="eval">Model evaluation (per image, worst first)</h2>']
     for k, res in enumerate(results):
-        what = (f"<code>{_e(res.checkpoint)}</code>" if res.checkpoint else "predictions")
+        what = f"<code>{_e(res.checkpoint)}</code>" if res.checkpoint else "predictions"
         split = f", split <b>{_e(res.split)}</b>" if res.split else ""
         parts.append(f'<h3 id="eval-{k}">{what}{split}</h3>')
         parts.append(f'<p class="meta">From <code>{_e(res.path)}</code>: {len(res.rows):,} '
@@ -496,7 +500,8 @@ def render_dataset_report(
     page = (
         '<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8" />\n'
         f"<title>Dataset report: {_e(root.resolve().name)}</title>\n"
-        f"<style>{_STYLE}</style>\n</head>\n<body>\n" + "\n".join(b for b in body if b)
+        f"<style>{_STYLE}</style>\n</head>\n<body>\n"
+        + "\n".join(b for b in body if b)
         + "\n</body>\n</html>\n"
     )
     summary = ReportSummary(
