@@ -485,7 +485,7 @@ def render_dataset_report(
         nav.remove(("frames", "frames"))
     body = [
         f"<h1>Dataset <code>{_e(root.resolve().name)}</code></h1>",
-        f'<p class="meta"><code>{_e(root.resolve())}</code> · schema version '
+        f'<p class="meta"><code>{_e(root)}</code> · schema version '
         f"{_e(info.schema_version)} · built by {_e(info.created_by or 'unknown')} · this page "
         f"by sparsetools {__version__} (<code>sparsetools dataset report</code>)</p>",
         "<nav>" + "".join(f'<a href="#{a}">{t}</a>' for a, t in nav)
