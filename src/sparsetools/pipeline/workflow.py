@@ -1,7 +1,8 @@
 """Declarative multi-step runs: ``sparsetools pipeline CONFIG.yaml`` and ``make demo``.
 
 A config lists steps; each step is one ``sparsetools`` command line (as in a shell) run
-in-process, its stdout captured into ``OUT/report.md`` together with the pictures it names::
+in-process, its stdout captured into ``OUT/report.md`` together with the pictures it names
+(``images:``, shown) and the other files it wants linked (``links:``: an HTML page, a video)::
 
     name: my run
     vars:                          # ${name} is replaced everywhere; ${out} is the output folder
@@ -12,9 +13,6 @@ in-process, its stdout captured into ``OUT/report.md`` together with the picture
         images: [${out}/depth_viz.png]
       - name: beams
         run: beams ${data}/velodyne_points/data --n 4 -o ${out}/beams4
-      - name: dataset report
-        run: dataset report ${out}/dataset -o ${out}/dataset_report.html
-        links: [${out}/dataset_report.html]    # pages, videos: linked, not shown inline
 
 YAML (``.yaml``/``.yml``) and TOML (``.toml``, steps as ``[[steps]]``) are accepted. Steps run
 in order; every command resumes, so re-running a config after an interruption is cheap.
