@@ -290,8 +290,8 @@ def test_resume_refusals_and_containment(sample_ds, tmp_path):
     out = out_dir / "report.html"
     assert run("dataset", "report", sample_ds, "-o", out, "--thumbnails", "1").exit_code == 0
     before = (out.stat().st_mtime_ns, out.read_bytes())
-    res = run("dataset", "report", sample_ds, "-o", out, "--thumbnails", "1")
-    assert res.exit_code == 0 and "up to date" in res.output
+    res = run("dataset", "report", sample_ds, "-o", out, "--thumbnails", "1", "--json")
+    assert res.exit_code == 0 and json.loads(res.output)["status"] == "up to date"
     assert (out.stat().st_mtime_ns, out.read_bytes()) == before
     res = run("dataset", "report", sample_ds, "-o", out, "--thumbnails", "2")
     assert res.exit_code == 1 and "--thumbnails 1, not 2" in res.output

@@ -502,12 +502,14 @@ def report(dataset_dir, out_dir, eval_path, thumbnails, threads, overwrite, as_j
       sparsetools dataset report out/ds -o out/ds_report.html
       sparsetools dataset report out/ds -o out/ds_report.html --eval out/run --thumbnails 6
     """
+    import dataclasses
+
     from ..pipeline.dataset.report import write_dataset_report
 
     s = write_dataset_report(dataset_dir, out_dir, thumbnails=thumbnails, eval_path=eval_path,
                              threads=threads, overwrite=overwrite)  # fmt: skip
     if as_json:
-        click.echo(json.dumps(s.__dict__, indent=1))
+        click.echo(json.dumps(dataclasses.asdict(s), indent=1))
     elif s.status == "up to date":
         click.echo(f"{s.path} is up to date")
     else:

@@ -16,7 +16,9 @@ so), like every output of sparsetools.
 
 from __future__ import annotations
 
+import dataclasses
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from html import escape
 from pathlib import Path
@@ -24,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ..._version import __version__
-from ...errors import FormatError, OutputError, ParameterError
+from ...errors import FormatError, ParameterError
 from ...io.dataset import MANIFEST_NAME, ManifestRow
 from ...validate import check_int_range
 from .inspect import DatasetInfo, VerifyReport, _human, dataset_info, verify_dataset
@@ -451,7 +453,7 @@ def render_dataset_report(
     dataset: str | os.PathLike,
     *,
     thumbnails: int = 4,
-    eval_results: list[EvalResults] = (),
+    eval_results: Sequence[EvalResults] = (),
     threads: int = 1,
 ) -> tuple[str, ReportSummary]:
     """The page of a dataset, as HTML text (what :func:`write_dataset_report` writes).
@@ -491,7 +493,7 @@ def render_dataset_report(
         "<nav>" + "".join(f'<a href="#{a}">{t}</a>' for a, t in nav)
         + ('<a href="#eval">evaluation</a>' if eval_results else "") + "</nav>",
         _summary_section(info), _splits_section(info, by_split),
-        _made_section(rows, {k: v for k, v in reader.info.items()}), plots, frames,
+        _made_section(rows, dict(reader.info)), plots, frames,
         _verify_section(report),
     ]  # fmt: skip
     if eval_results:
@@ -557,8 +559,6 @@ def write_dataset_report(
     root = Path(dataset)
     manifest = root / MANIFEST_NAME
     table, _ = read_manifest(manifest)
-    if out.resolve() == manifest.resolve():  # pragma: no cover - the suffix already differs
-        raise OutputError(f"output {out} would replace the manifest: choose another -o")
     ids = set(table.column("id").to_pylist())
     eval_files = find_eval_results(eval_path, ids) if eval_path is not None else []
     settings = ReportSettings(
@@ -576,4 +576,4 @@ def write_dataset_report(
                                           threads=threads)  # fmt: skip
     atomic_write_bytes(out, page.encode("utf-8"))
     target.record()
-    return ReportSummary(**{**summary.__dict__, "path": str(out)})
+    return dataclasses.replace(summary, path=str(out))
