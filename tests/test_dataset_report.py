@@ -342,6 +342,17 @@ def test_a_damaged_dataset_gets_its_page_with_the_problem_under_its_check(sample
     assert fig.find("img") is None and "cannot be drawn" in text_of(fig)
 
 
+def test_matplotlib_is_imported_only_to_draw():
+    """The command line and the report module load without matplotlib (the optional extra)."""
+    import sys
+
+    code = ("import sys, sparsetools.cli.main, sparsetools.cli.dataset, "
+            "sparsetools.pipeline.dataset.report; print('matplotlib' in sys.modules)")  # fmt: skip
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                       env={**os.environ, "PYTHONPATH": str(Path(__file__).parents[1] / "src")})  # fmt: skip
+    assert r.returncode == 0 and r.stdout.strip() == "False", r.stderr[-2000:]
+
+
 # -- the demo's pipeline links the page -------------------------------------------------------------
 
 
