@@ -24,6 +24,7 @@ from .options import (
     nuscenes_version_option,
     one_split_choice,
     output_dir_option,
+    overwrite_option,
     quiet_debug_options,
     resize_option,
     seed_option,
@@ -567,3 +568,58 @@ def verify(dataset_dir, no_hash, threads, as_json):
     click.echo(json.dumps(report.to_dict(), indent=1) if as_json else report.format())
     if not report.ok:
         raise click.ClickException(f"{len(report.problems)} problem(s) found in {dataset_dir}")
+
+
+@dataset.command("report")
+@click.argument("dataset_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@output_dir_option(
+    file=True,
+    help="The page (.html), one self-contained file: pictures embedded, no link outside it. "
+    "Refused if it exists and was not written by dataset report, unless --overwrite.",
+)
+@click.option(
+    "--eval", "eval_path", type=click.Path(exists=True, path_type=Path), metavar="RUN|FILE",
+    help="Per-image metrics of a trained model, worst first: a train run folder (its "
+    "eval_*.json of this dataset) or a results file of `sparsetools eval`.",
+)  # fmt: skip
+@click.option(
+    "--thumbnails", type=click.IntRange(min=0), default=4, show_default=True, metavar="N",
+    help="Thumbnails per group and split: the N frames of lowest density, the N of highest, "
+    "N spread over the split (0: none).",
+)  # fmt: skip
+@threads_option(help="Threads of the verify run.")
+@overwrite_option(help="Replace a page that dataset report did not write, or wrote otherwise.")
+@json_option(help="Print the summary as JSON.")
+@quiet_debug_options
+def report(dataset_dir, out_dir, eval_path, thumbnails, threads, overwrite, as_json):
+    """One HTML page showing the whole dataset: counts, histograms, thumbnails, checks.
+
+    Per split: the counts of `dataset info`, sequences, sources and the recorded generation
+    parameters; histograms of density and depth (matplotlib: pip install 'sparsetools[viz]');
+    thumbnails of the frames of lowest and highest density (sparse depth over the image); the
+    checks of `dataset verify` and their outcome; with --eval, a model's per-image metrics,
+    worst frames first. The page is rewritten only when the manifest or the eval results
+    change.
+
+    \b
+    Examples:
+      sparsetools dataset report out/ds -o out/ds_report.html
+      sparsetools dataset report out/ds -o out/ds_report.html --eval out/run --thumbnails 6
+    """
+    import dataclasses
+
+    from ..pipeline.dataset.report import write_dataset_report
+
+    s = write_dataset_report(dataset_dir, out_dir, thumbnails=thumbnails, eval_path=eval_path,
+                             threads=threads, overwrite=overwrite)  # fmt: skip
+    if as_json:
+        click.echo(json.dumps(dataclasses.asdict(s), indent=1))
+    elif s.status == "up to date":
+        click.echo(f"{s.path} is up to date")
+    else:
+        verdict = "no problem" if not s.problems else f"{s.problems} problem(s) (listed in it)"
+        click.echo(
+            f"{s.path} written: {s.samples} sample(s) in {s.splits} split(s), {s.thumbnails} "
+            f"thumbnail(s), {s.eval_images} evaluated image(s); verify: {verdict} "
+            f"({s.bytes / 1024:.0f} KB)"
+        )

@@ -1,7 +1,8 @@
 """Declarative multi-step runs: ``sparsetools pipeline CONFIG.yaml`` and ``make demo``.
 
 A config lists steps; each step is one ``sparsetools`` command line (as in a shell) run
-in-process, its stdout captured into ``OUT/report.md`` together with the pictures it names::
+in-process, its stdout captured into ``OUT/report.md`` together with the pictures it names
+(``images:``, shown) and the other files it wants linked (``links:``: an HTML page, a video)::
 
     name: my run
     vars:                          # ${name} is replaced everywhere; ${out} is the output folder
@@ -43,6 +44,7 @@ class Step:
     name: str
     run: list[str]
     images: list[str] = field(default_factory=list)
+    links: list[str] = field(default_factory=list)
     allow_failure: bool = False
     note: str = ""
 
@@ -211,8 +213,17 @@ def run_workflow(
     return results
 
 
+def _relative(p: Path, report: Path) -> str:
+    """``p`` as a link from the report's folder (absolute where no relative path exists)."""
+    try:
+        return os.path.relpath(p, report.parent)
+    except ValueError:
+        return str(p)
+
+
 def write_report(workflow: Workflow, results: list[StepResult], path: Path) -> None:
-    """Markdown report: one section per step with its command, output and pictures."""
+    """Markdown report: one section per step with its command, output, pictures (shown) and
+    links (other files the step wrote: an HTML page, a video), those that exist."""
     lines = [f"# {workflow.name}", ""]
     if workflow.intro:
         lines += [workflow.intro.strip(), ""]
@@ -242,10 +253,10 @@ def write_report(workflow: Workflow, results: list[StepResult], path: Path) -> N
         for im in r.step.images:
             p = Path(im)
             if p.exists():
-                try:
-                    rel = os.path.relpath(p, path.parent)
-                except ValueError:
-                    rel = str(p)
-                lines += [f"![{p.stem}]({rel})", ""]
+                lines += [f"![{p.stem}]({_relative(p, path)})", ""]
+        for link in r.step.links:
+            p = Path(link)
+            if p.exists():
+                lines += [f"[{p.name}]({_relative(p, path)})", ""]
     with atomic_path(path) as tmp:
         tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")

@@ -1,8 +1,8 @@
 """Reading a pipeline config: a strict schema, variables without cycles, bounded expansion.
 
 Every key is known and typed; a mistake is one error naming its place in the config
-(``demo.yaml: steps[3]: unknown key 'alow_failure' (known: name, run, images, allow_failure,
-note)``). ``${name}`` refers to ``vars:`` (and ``--set``), ``${out}`` and ``${config_dir}``; a
+(``demo.yaml: steps[3]: unknown key 'alow_failure' (known: name, run, images, links,
+allow_failure, note)``). ``${name}`` refers to ``vars:`` (and ``--set``), ``${out}`` and ``${config_dir}``; a
 variable may use other variables, but never itself through a cycle, and no value may grow past
 :data:`MAX_VALUE` characters. A YAML alias bomb is refused by counting the nodes the document
 really holds (aliases counted each time they are used), and a step may not start another
@@ -29,7 +29,8 @@ MAX_VALUE = 1 << 16
 
 _VAR = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)\}")
 _TOP = {"name": str, "intro": str, "vars": dict, "steps": list}
-_STEP = {"name": str, "run": (str, list), "images": list, "allow_failure": bool, "note": str}
+_STEP = {"name": str, "run": (str, list), "images": list, "links": list,
+         "allow_failure": bool, "note": str}  # fmt: skip
 _RECURSIVE = {"pipeline", "demo"}
 
 
@@ -199,9 +200,10 @@ def parse_config(
             raise FormatError(f"{at}.run: empty command line")
         if args[0] in _RECURSIVE:
             raise FormatError(f"{at}.run: a step may not run `sparsetools {args[0]}` (recursion)")
-        images = step.get("images", [])
-        if not all(isinstance(im, str) for im in images):
-            raise FormatError(f"{at}.images: a list of paths (strings)")
+        images, links = step.get("images", []), step.get("links", [])
+        for key, paths in (("images", images), ("links", links)):
+            if not all(isinstance(p, str) for p in paths):
+                raise FormatError(f"{at}.{key}: a list of paths (strings)")
         name = step.get("name", args[0])
         if name in names:
             raise FormatError(f"{at}: two steps are named {name!r}")
@@ -211,6 +213,7 @@ def parse_config(
                 "name": name,
                 "run": args,
                 "images": [_substitute(im, variables, f"{at}.images") for im in images],
+                "links": [_substitute(p, variables, f"{at}.links") for p in links],
                 "allow_failure": step.get("allow_failure", False),
                 "note": _substitute(step.get("note", ""), variables, f"{at}.note"),
             }
