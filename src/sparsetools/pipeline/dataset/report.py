@@ -570,7 +570,7 @@ def write_dataset_report(
                         overwrite=overwrite, noun="a dataset report")  # fmt: skip
     if target.up_to_date():
         return ReportSummary(path=str(out), status="up to date", bytes=out.stat().st_size)
-    require_matplotlib()
+    require_matplotlib("dataset report")
     results = [read_eval_results(p, ids) for p in eval_files]
     page, summary = render_dataset_report(root, thumbnails=thumbnails, eval_results=results,
                                           threads=threads)  # fmt: skip

@@ -8,30 +8,18 @@ opens, and nothing is shared between two reports made in one process.
 
 from __future__ import annotations
 
-import importlib
 import io
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from ...errors import DependencyError
+from ...io.plots import COLOURS, INSTALL_HINT, require_matplotlib
 
 __all__ = ["INSTALL_HINT", "HistogramPanel", "histogram_png", "require_matplotlib"]
 
-#: How to get matplotlib (the extra of pyproject.toml).
-INSTALL_HINT = "pip install 'sparsetools[viz]'"
-
-#: One colour per split, the same in every plot of a report (matplotlib's tab10, in order).
-SPLIT_COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2")
-
-
-def require_matplotlib(what: str = "dataset report") -> None:
-    """Import matplotlib, or raise :class:`DependencyError` naming the extra that brings it."""
-    try:
-        importlib.import_module("matplotlib")
-    except ModuleNotFoundError as exc:
-        raise DependencyError(f"{what} needs matplotlib: {INSTALL_HINT}") from exc
+#: One colour per split, the same in every plot of a report (the colours of io.plots).
+SPLIT_COLOURS = COLOURS
 
 
 @dataclass(frozen=True)
@@ -112,7 +100,7 @@ def histogram_png(
     bytes
         A PNG image of ``width_px`` x ``height_px`` pixels.
     """
-    require_matplotlib()
+    require_matplotlib("dataset report")
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
