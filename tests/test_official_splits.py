@@ -483,3 +483,35 @@ def test_the_fraction_spelling_still_works_and_warns_once(routes, tmp_path):
     bad = run(*base, "--split", "0.6,x")  # read as --splits reads it, named as typed
     assert bad.exit_code == 2 and "Invalid value for '--split'" in bad.stderr
     assert "split fractions as numbers" in bad.stderr and len(routes) == 1
+
+
+# -- a shipped list by name where a split file is taken (--split-file eigen:test) -----------------
+
+
+def test_shipped_list_by_name_is_the_shipped_file():
+    from sparsetools.pipeline.dataset.official_splits import shipped_split_file
+
+    part, path = shipped_split_file("eigen:test")
+    assert part == "test" and path.name == "eigen_test_files.txt"
+    lines = [ln for ln in path.read_text().splitlines() if ln.strip()]
+    assert len(lines) == 697
+    part, path = shipped_split_file("official:val")
+    assert len(path.read_text().split()) == 150
+    for bad in ("eigen", "eigen:nope", "nope:test", "mini:test"):
+        with pytest.raises(ParameterError):
+            shipped_split_file(bad)
+
+
+@pytest.mark.real
+def test_split_file_option_takes_a_shipped_list(real_dir, tmp_path):
+    # The export reads the shipped Eigen test list: every line names a drive the real
+    # sequence is not, so the refusal names the shipped file (the list was found and read).
+    tree = real_dir / "kitti-raw-sequence-2011_09_26"
+    r = run("dataset", "export", tree, "-o", tmp_path / "gt", "--layout", "monodepth2-gt",
+            "--split-file", "eigen:test")  # fmt: skip
+    assert r.exit_code != 0 and "697 of the 697 lines" in r.output
+    assert "eigen_test_files.txt" in r.output and "Traceback" not in r.output
+    bad = run("dataset", "export", tree, "-o", tmp_path / "gt", "--layout", "monodepth2-gt",
+              "--split-file", "eigen:nope")  # fmt: skip
+    assert bad.exit_code == 2 and "has no 'nope' list" in bad.output
+    assert not (tmp_path / "gt").exists()

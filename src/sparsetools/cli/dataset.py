@@ -7,6 +7,7 @@ from pathlib import Path
 
 import click
 
+from ..errors import ParameterError
 from .options import (
     batch_options,
     calib_option,
@@ -95,6 +96,14 @@ def _split_file_callback(ctx, param, value):
             if not name or not Path(path).is_file():
                 raise click.BadParameter(f"expected NAME=PATH with an existing file, got {item!r}")
             out.append((name, path))
+        elif ":" in item and not Path(item).exists():  # a shipped list: eigen:test
+            from ..pipeline.dataset.official_splits import shipped_split_file
+
+            try:
+                part, path = shipped_split_file(item)
+            except ParameterError as exc:
+                raise click.BadParameter(str(exc)) from None
+            out.append((part, str(path)))
         else:
             if not Path(item).is_file():
                 raise click.BadParameter(f"no such split file: {item}")
@@ -139,10 +148,12 @@ def dataset():
 
 
 def _split_file_option(*, help: str):
-    """``--split-file [NAME=]FILE``, repeatable: the frames of one split by list."""
+    """``--split-file [NAME=]FILE``, repeatable: the frames of one split by list (or a
+    shipped list, ``NAME:SPLIT`` such as ``eigen:test``)."""
     return click.option(
         "--split-file", "split_files", multiple=True, callback=_split_file_callback,
-        metavar="[NAME=]FILE", help=help,
+        metavar="[NAME=]FILE|LIST:SPLIT", help=help + " A shipped list is named LIST:SPLIT "
+        "(eigen:test, eigen_benchmark:test, official:val).",
     )  # fmt: skip
 
 
@@ -495,7 +506,7 @@ def export(maps, out_dir, layout, name, split_from, default_split, split_files, 
       sparsetools dataset export out/depth4 -o out/kitti_dc4 --name velodyne_raw_4beam \\
           --split-from /data/kitti_dc/data_depth_velodyne
       sparsetools dataset export /data/kitti_raw -o out/eigen --layout monodepth2-gt \\
-          --split-file monodepth2/splits/eigen/test_files.txt
+          --split-file eigen:test
     """
     if layout == "monodepth2-gt":
         _export_monodepth2_gt(maps, out_dir, split_files, split_from, depth_value, batch, as_json)
@@ -518,12 +529,13 @@ def _export_monodepth2_gt(root, out_dir, split_files, split_from, depth_value, b
     """``export --layout monodepth2-gt``: one archive, not per-frame work (no run_job)."""
     from ..pipeline.monodepth2_gt import export_monodepth2_gt
 
-    if len(split_files) != 1 or isinstance(split_files[0], tuple):
-        raise click.UsageError("--layout monodepth2-gt needs one --split-file FILE")
+    if len(split_files) != 1:
+        raise click.UsageError("--layout monodepth2-gt needs one --split-file FILE (or eigen:test)")
+    split_file = split_files[0][1] if isinstance(split_files[0], tuple) else split_files[0]
     if split_from is not None:
         raise click.UsageError("--split-from is for --layout kitti-dc")
     result = export_monodepth2_gt(
-        root, split_files[0], out_dir, value=depth_value, overwrite=batch.overwrite,
+        root, split_file, out_dir, value=depth_value, overwrite=batch.overwrite,
         progress=batch.show_progress,
     )  # fmt: skip
     emit_summary(result, as_json=as_json, title=f"monodepth2 ground truth written to {out_dir}")

@@ -19,6 +19,7 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass
 from importlib import resources
+from pathlib import Path
 
 from ...errors import ParameterError
 from .splits import SplitList, parse_split_lines
@@ -31,6 +32,7 @@ __all__ = [
     "official_split",
     "official_split_lists",
     "official_split_names",
+    "shipped_split_file",
     "shipped_split_lines",
 ]
 
@@ -124,6 +126,30 @@ def official_split(name: str, dataset: str | None = None) -> OfficialSplit:
             param="--split",
         )
     return split
+
+
+def shipped_split_file(spec: str) -> tuple[str, Path]:
+    """``NAME:SPLIT`` (``eigen:test``) -> (split, the shipped list's path on disk).
+
+    Raises
+    ------
+    ParameterError
+        Not ``NAME:SPLIT``, an unknown name, or a split the name does not have.
+    """
+    name, sep, part = str(spec).partition(":")
+    if not sep:
+        raise ParameterError(f"expected a shipped list as NAME:SPLIT (eigen:test), got {spec!r}")
+    split = official_split(name)
+    files = dict(split.lists)
+    if part not in files:
+        raise ParameterError(
+            f"the official split {name} has no {part!r} list (it has {', '.join(files)})"
+        )
+    ref = resources.files("sparsetools") / "data" / "splits" / split.dataset / files[part]
+    path = Path(str(ref))
+    if not path.is_file():  # a zipped installation: no file on disk to hand out
+        raise ParameterError(f"the shipped split list {split.dataset}/{files[part]} is not a file")
+    return part, path
 
 
 def _shipped_text(dataset: str, file: str) -> str:
