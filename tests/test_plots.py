@@ -404,7 +404,7 @@ def test_depth_bins_of_one_image_edges_and_empty():
     assert pooled["rmse"] == [1.0, pytest.approx(math.sqrt(2.0))]
     assert aggregate_depth_bins([empty], (0.0, 5.0, 10.0))["mae"] == [None, None]
     for bad in ((5.0,), (0.0, 5.0, 5.0), (10.0, 0.0)):
-        with pytest.raises(ParameterError, match="bin_edges"):
+        with pytest.raises(ParameterError, match="bin-edges"):
             depth_metrics(pred, gt, bin_edges=bad)
 
 

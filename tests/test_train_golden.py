@@ -19,6 +19,7 @@ after checking that each run has one and that the resumed run kept the cut run's
 
 from __future__ import annotations
 
+import copy
 import json
 import re
 import sys
@@ -71,12 +72,20 @@ def _without_run_id(fingerprint: dict) -> str:
     return run_id
 
 
+#: Pictures that differ from 0.2.0's on purpose: the training curves are drawn with matplotlib
+#: since 0.4 (0.2.0 drew them tick by tick with OpenCV). Still written; bytes not compared.
+CHANGED_SINCE_020 = ("curves.png",)
+
+
 @pytest.mark.parametrize("name", list(CASES))
 def test_training_reproduces_v020(dataset, tmp_path, name):
     got = run_case(name, dataset, tmp_path)
     ids = {run: _without_run_id(got[run]) for run in ("full", "cut", "resumed")}
     assert ids["resumed"] == ids["cut"] != ids["full"]  # resume continues the run, under its id
-    want = GOLDEN["cases"][name]
+    want = copy.deepcopy(GOLDEN["cases"][name])
     for run in ("full", "cut", "resumed"):
+        for picture in CHANGED_SINCE_020:
+            assert got[run]["pictures"].pop(picture) != want[run]["pictures"][picture]
+            want[run]["pictures"].pop(picture)
         diff = _differences(got[run], want[run])
         assert not diff, f"{name} ({run} run) differs from 0.2.0:\n" + "\n".join(diff[:20])

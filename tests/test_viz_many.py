@@ -104,7 +104,7 @@ def test_contact_sheet_layout_blank_cells_and_one_label_per_tile():
     ys = np.nonzero(changed)[0]
     (_, text_h), base = cv2.getTextSize("a", cv2.FONT_HERSHEY_SIMPLEX, 0.35, 1)
     assert ys.min() > th // 2 and ys.max() - ys.min() <= text_h + base + 4
-    with pytest.raises(ParameterError, match="do not fit"):
+    with pytest.raises(ParameterError, match="tiles of a 2x2 grid: must be <= 4"):
         contact_sheet(tiles * 2, grid=(2, 2))
     with pytest.raises(ParameterError, match="label"):
         contact_sheet(tiles, ["a"], grid=(2, 2))

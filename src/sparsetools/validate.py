@@ -40,6 +40,7 @@ __all__ = [
     "check_dtype",
     "check_finite",
     "check_flag",
+    "check_increasing",
     "check_instance",
     "check_int_range",
     "check_multiple",
@@ -52,6 +53,7 @@ __all__ = [
     "check_positive",
     "check_probability",
     "check_range",
+    "check_same_length",
     "check_same_shape",
     "check_shape",
     "check_values",
@@ -430,6 +432,28 @@ def check_nonempty(items, name: str) -> None:
     """``items`` (a sequence: scans, sweeps, panels, rings...) holds at least one element."""
     if len(items) == 0:
         raise ParameterError("must hold at least one item, got none", param=name)
+
+
+def check_same_length(items, other, name: str, other_name: str) -> None:
+    """One of ``items`` (labels, weights...) per element of ``other`` (maps, tiles...)."""
+    if len(items) != len(other):
+        raise ParameterError(
+            f"{len(items)} {name} for {len(other)} {other_name}: give one per {other_name}",
+            param=name,
+        )
+
+
+def check_increasing(a, name: str, *, nonempty: bool = True) -> np.ndarray:
+    """``a`` as a 1-D float64 array of at least two strictly increasing finite values
+    (bin edges, thresholds)."""
+    arr = np.asarray(a, dtype=np.float64)
+    check_shape(arr, "(K)", name, nonempty=nonempty)
+    check_all_finite(arr, name)
+    if arr.size < 2 or np.any(np.diff(arr) <= 0):
+        raise ParameterError(
+            f"must be at least two strictly increasing values, got {arr.tolist()[:6]}", param=name
+        )
+    return arr
 
 
 def check_points(a, name: str = "points", *, nonempty: bool = False) -> int:

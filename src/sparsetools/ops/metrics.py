@@ -35,6 +35,7 @@ import numpy as np
 from ..errors import ParameterError
 from ..validate import (
     check_dtype,
+    check_increasing,
     check_int_range,
     check_ordered,
     check_positive,
@@ -174,10 +175,7 @@ def depth_metrics(
     n = int(g.size)
     out: dict = {}
     if bin_edges is not None:
-        edges = np.asarray(bin_edges, np.float64)
-        check_shape(edges, "(K)", "bin_edges", nonempty=True)
-        if edges.size < 2 or np.any(np.diff(edges) <= 0):
-            raise ParameterError("bin_edges must be at least two increasing depths")
+        edges = check_increasing(bin_edges, "bin_edges")
     if n == 0:
         out = dict.fromkeys(METRIC_NAMES, math.nan)
         out["n_pixels"] = 0

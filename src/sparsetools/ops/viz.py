@@ -11,7 +11,6 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ..errors import ParameterError
 from ..validate import (
     check_choice,
     check_dtype,
@@ -20,6 +19,7 @@ from ..validate import (
     check_nonempty,
     check_ordered,
     check_positive,
+    check_same_length,
     check_same_shape,
     check_shape,
 )
@@ -179,8 +179,8 @@ def depth_panels(
     (H', W', 3) uint8
     """
     check_nonempty(depths, "depths")
-    if labels is not None and len(labels) != len(depths):
-        raise ParameterError(f"{len(labels)} label(s) for {len(depths)} depth map(s)")
+    if labels is not None:
+        check_same_length(labels, depths, "labels", "depth maps")
     check_positive(max_depth, "max_depth")
     check_int_range(dilate, "dilate", low=0)
     if panel_width is not None:
@@ -303,10 +303,9 @@ def contact_sheet(
     check_nonempty(tiles, "tiles")
     cols = check_int_range(grid[0], "grid columns", low=1)
     rows = check_int_range(grid[1], "grid rows", low=1)
-    if len(tiles) > cols * rows:
-        raise ParameterError(f"{len(tiles)} tiles do not fit a {cols}x{rows} grid", param="grid")
-    if labels is not None and len(labels) != len(tiles):
-        raise ParameterError(f"{len(labels)} label(s) for {len(tiles)} tile(s)", param="labels")
+    check_int_range(len(tiles), f"tiles of a {cols}x{rows} grid", high=cols * rows)
+    if labels is not None:
+        check_same_length(labels, tiles, "labels", "tiles")
     margin = check_int_range(margin, "margin", low=0)
     check_int_range(background, "background", low=0, high=255)
     for i, tile in enumerate(tiles):
