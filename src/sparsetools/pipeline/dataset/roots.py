@@ -42,7 +42,7 @@ NUSCENES_OPTIONS = {
 KITTI_RAW_OPTIONS = {
     "route": "dataset", "beams": "--beams", "gt": "--gt-method", "gt_neighbours": "--gt-neighbours",
     "stereo_check": "--stereo-check/--no-stereo-check", "icp_min_range": "--icp-min-range",
-    "gt_filter_occluded": "--filter-occluded",
+    "gt_filter_occluded": "--filter-occluded", "resize_to": "--resize-to",
 }  # fmt: skip
 KITTI_DC_OPTIONS = {"route": "dataset", "sparse": "--sparse-name", "selection": "--selection"}
 
@@ -214,6 +214,7 @@ def build_kitti_raw_dataset(
     gt_neighbours: int = 5,
     stereo_check: bool | None = None,
     icp_min_range: float = 0.0,
+    resize_to: tuple[int, int] | None = None,
     split: str | None = None,
     split_files=None,
     official_split: str | None = None,
@@ -239,11 +240,19 @@ def build_kitti_raw_dataset(
       points that disagree with SGBM stereo of image_02 / image_03
       (:mod:`sparsetools.ops.stereo`); None: on for the frames whose image_03 exists.
 
+    ``resize_to`` (width, height): every image resized to exactly this size (OpenCV area
+    interpolation when shrinking) with its intrinsics scaled per axis
+    (:meth:`~sparsetools.calibration.Calibration.resized_to`), staged in ``.sources/images``
+    with per-frame calibrations; the input and the ground truth are projected directly at that
+    size with the scaled calibration (no depth map is resized). monodepth2's KITTI setting is
+    ``(640, 192)``. Without it the images are copied from the tree at their own size.
+
     Raises
     ------
     UsageError
         ``gt_neighbours`` / ``stereo_check`` / ``icp_min_range`` without ``gt="accumulated"``,
-        ``stereo_check`` with another camera than 2.
+        ``stereo_check`` with another camera than 2, ``resize_to`` with
+        ``gt="accumulated"``.
     FormatError
         ``stereo_check=True`` and a frame without image_03.
     """
@@ -252,6 +261,13 @@ def build_kitti_raw_dataset(
     from ..project import ProjectJob, ProjectSettings
 
     _check_kitti_raw_gt(gt, gt_neighbours, stereo_check, icp_min_range, camera)
+    if resize_to is not None:
+        from ...validate import parse_size
+
+        resize_to = parse_size(resize_to, "--resize-to")
+        if gt == "accumulated":
+            raise UsageError("--resize-to does not go with --gt-method accumulated (its stereo "
+                             "check matches the images at their own size)", param="--resize-to")  # fmt: skip
     batch = batch or Batch()
     out = Path(out_dir)
     if not is_kitti_raw(root):
@@ -260,7 +276,7 @@ def build_kitti_raw_dataset(
             "data/ or image_0N/data/ with the calibration pair)"
         )
     frames = cloud_frames([root], camera=camera)
-    project = ProjectJob(ProjectSettings(camera=camera))
+    project = ProjectJob(ProjectSettings(camera=camera, resize_to=resize_to))
     plain_gt = gt == "scan" and not filter_occluded
     if plain_gt or beams is None:  # the scan's projection: the truth, or the 64-beam input
         run_job(project, frames, _stage(out, "gt"), batch=batch, inputs=[root])
@@ -268,7 +284,7 @@ def build_kitti_raw_dataset(
     methods, windows = dict.fromkeys((str(f.key) for f in frames), "scan"), {}
     if gt == "scan" and filter_occluded:
         gt_dir = _stage(out, "gt_occluded")
-        occluded = ProjectJob(ProjectSettings(camera=camera, filter_occluded=True))
+        occluded = ProjectJob(replace(project.settings, filter_occluded=True))
         s = run_job(occluded, frames, gt_dir, batch=batch, inputs=[root], desc="gt")
         methods = dict.fromkeys(methods, "scan+occlusion")
         gt_totals = {"occluded_pixels": s.totals.get("occluded_pixels", 0)}
@@ -289,6 +305,12 @@ def build_kitti_raw_dataset(
         ]  # fmt: skip
         sparse = _stage(out, f"sparse{beams}")
         run_job(project, beam_frames, sparse, batch=batch)
+    # After the projections, whose records refuse another --resize-to before anything is
+    # written here: the images at the maps' size, with their calibrations.
+    rgb, calib = root, None
+    if resize_to is not None:
+        rgb, calib = _resized_images(frames, out, resize_to, camera=camera, root=root,
+                                     batch=batch)  # fmt: skip
     params = {"route": "kitti-raw", "beams": beams}
     # Recorded only when not the default, so datasets of earlier versions resume.
     if gt != "scan":
@@ -298,6 +320,8 @@ def build_kitti_raw_dataset(
             params["icp_min_range"] = icp_min_range
     if filter_occluded and gt == "scan":  # accumulated always filters: not a setting there
         params["gt_filter_occluded"] = True
+    if resize_to is not None:
+        params["resize_to"] = list(resize_to)
     # The default (one scan) writes the rows 0.2 wrote, byte for byte: no gt_method, which
     # ``dataset info`` reads as ``scan`` for this route.
     per_sample = None
@@ -308,9 +332,10 @@ def build_kitti_raw_dataset(
         }
     summary = build_dataset(
         out,
-        rgb=root,
+        rgb=rgb,
         sparse=sparse,
         gt=gt_dir,
+        calib=calib,
         split=split,
         split_files=split_files,
         official_split=official_split,
@@ -327,6 +352,24 @@ def build_kitti_raw_dataset(
     return summary.with_totals(
         {"gt": {"method": method, "methods": _count(methods.values()), **gt_totals}}
     )
+
+
+def _resized_images(frames, out: Path, size, *, camera, root, batch) -> tuple[Path, Path]:
+    """The images stage of ``--resize-to``: every frame's camera image at ``size`` and its
+    calibration (``.sources/images/calib``), the folders the dataset is built from."""
+    from ...io.calib import load_calibration
+    from ..camera_images import CameraImageJob, CameraImageSettings
+
+    loaded = {}  # one read per calibration folder (a date's pair)
+    for f in frames:
+        if f.image is not None and f.calib not in loaded:
+            loaded[f.calib] = load_calibration(f.calib, camera=camera)
+    with_image = [replace(f, calibration=loaded[f.calib]) for f in frames if f.image is not None]
+    images = _stage(out, "images")
+    if with_image:
+        job = CameraImageJob(CameraImageSettings(resize_to=size))
+        run_job(job, with_image, images, batch=batch, inputs=[root], desc="images")
+    return images, images / "calib"
 
 
 #: The vocabulary of ``generation_params["sample"]["gt_method"]`` (docs/dataset.md).
