@@ -187,18 +187,12 @@ def resize_option(f=None, *, help: str | None = None):
 
 
 def resize_to_option(f=None, *, help: str | None = None):
-    """``--resize-to WxH``: images resized to exactly this size, intrinsics per axis."""
-
     def deco(fn):
         return click.option(
-            "--resize-to",
-            callback=size_wxh,
-            default=None,
-            metavar="WxH",
-            help=help
-            or "Resize every image to exactly W x H pixels (each axis scaled on its own, "
-            "intrinsics too) and project at that size, e.g. 640x192 (monodepth2).",
-        )(fn)
+            "--resize-to", callback=size_wxh, default=None, metavar="WxH",
+            help=help or "Resize every image to exactly W x H pixels (each axis scaled on its "
+            "own, intrinsics too) and project at that size, e.g. 640x192 (monodepth2).",
+        )(fn)  # fmt: skip
 
     return deco(f) if f is not None else deco
 
