@@ -263,11 +263,76 @@ def test_bad_sizes_are_one_line_usage_errors(raw_root, tmp_path, value):
 
 
 @pytest.mark.real
-def test_resize_to_with_accumulated_ground_truth_is_refused(raw_root, tmp_path):
-    out = tmp_path / "ds"
-    r = run("dataset", "kitti-raw", raw_root, "-o", out, "--resize-to", "640x192",
-            "--gt-method", "accumulated")  # fmt: skip
-    assert r.exit_code == 2
-    errors = [ln for ln in r.output.splitlines() if ln.startswith("Error")]
-    assert len(errors) == 1 and "--resize-to" in errors[0] and "accumulated" in errors[0]
-    assert not out.exists()
+def test_accumulated_ground_truth_is_made_at_the_new_size(raw_root, tmp_path):
+    """K = 0: frame t's own scan, occlusion-filtered, at 640x192: every point it keeps sits
+    where the reference puts it, with its depth; the calibration is the scaled one."""
+    from sparsetools.io.dataset_reader import DatasetReader
+
+    ds = tmp_path / "ds"
+    args = ["dataset", "kitti-raw", raw_root, "-o", ds, "--resize-to", "640x192",
+            "--gt-method", "accumulated", "--gt-neighbours", "0"]  # fmt: skip
+    s = summary(*args)
+    assert s["samples"] == N and s["gt"]["method"] == "accumulated"
+    cam = _values(raw_root / DATE / "calib_cam_to_cam.txt")
+    velo = _values(raw_root / DATE / "calib_velo_to_cam.txt")
+    reader = DatasetReader(ds)
+    for row in reader.manifest.to_pylist():
+        assert (row["width"], row["height"]) == SIZE
+        assert row["fx"] == pytest.approx(cam["P_rect_02"][0] * SIZE[0] / W0, abs=1e-9)
+        frame = row["frame"]
+        gt = reader.sample(row["id"])["gt"]
+        assert gt.shape == (SIZE[1], SIZE[0])
+        ref = _reference_map(raw_root / DATE / DRIVE / "velodyne_points" / "data" /
+                             f"{frame}.bin", cam, velo, SIZE)  # fmt: skip
+        kept = gt > 0
+        assert not np.any(kept & (ref == 0))  # no point where the reference has none
+        np.testing.assert_allclose(gt[kept], ref[kept], rtol=0, atol=0.5 / 256 + 1e-6)
+        # the occlusion test removes a minority of the pixels
+        assert 0.5 * np.count_nonzero(ref) < np.count_nonzero(kept) <= np.count_nonzero(ref)
+        calib = json.loads((ds / ".sources" / "gt_accumulated" / "calib" / DRIVE /
+                            f"{frame}.json").read_text())  # fmt: skip
+        assert calib["resize_to"] == list(SIZE) and (calib["width"], calib["height"]) == SIZE
+    assert summary(*args)["processed"] == 0
+    # another size is refused by the accumulate stage's record, before anything is written
+    r = run(*args[:-5], "320x96", *args[-4:])
+    assert r.exit_code != 0 and "--resize-to" in r.output and "Traceback" not in r.output
+    image = cv2.imread(str(ds / ".sources" / "images" / DRIVE / "0000000000.png"))
+    assert image.shape[:2] == (SIZE[1], SIZE[0])
+
+
+@pytest.mark.real
+def test_stereo_check_at_the_new_size_scales_fx(raw_root, tmp_path):
+    """A textured pair shifted by 40 native pixels (so 40 * 640/1242 resized ones): points at
+    the pair's depth are kept, points at twice it (half the disparity) are removed; with fx
+    left unscaled every point would disagree."""
+    from sparsetools.io.image import read_depth_png, write_depth_png
+    from sparsetools.io.sources import Frame, FrameKey
+    from sparsetools.pipeline.core import run_job
+    from sparsetools.pipeline.stereo_check import StereoCheckJob
+
+    rng = np.random.default_rng(1)
+    texture = cv2.resize(rng.integers(0, 256, (H0 // 3, W0 // 3 + 20), dtype=np.uint8),
+                         (W0 + 60, H0), interpolation=cv2.INTER_LINEAR)  # fmt: skip
+    d = 40
+    left, right = texture[:, :W0], texture[:, d : d + W0]  # right(u) = left(u + d)
+    left_p, right_p = tmp_path / "l.png", tmp_path / "r.png"
+    cv2.imwrite(str(left_p), cv2.merge([left] * 3))
+    cv2.imwrite(str(right_p), cv2.merge([right] * 3))
+    cam = _values(raw_root / DATE / "calib_cam_to_cam.txt")
+    fx = cam["P_rect_02"][0]
+    baseline = (cam["P_rect_02"][3] - cam["P_rect_03"][3]) / fx
+    z = fx * baseline / d  # the pair's depth: disparity d at the native size
+    depth = np.zeros((SIZE[1], SIZE[0]), np.float32)
+    depth[60:130:4, 200:400:4] = z  # kept
+    depth[62:130:4, 200:400:4] = 2 * z  # half the disparity: removed
+    maps = tmp_path / "maps"
+    key = FrameKey("seq", "0")
+    write_depth_png(key.path(maps, ".png"), depth)
+    frame = Frame(key=key, depth=key.path(maps, ".png"), image=left_p, calib=raw_root / DATE)
+    job = StereoCheckJob(right=((str(key), str(right_p)),), resize_to=SIZE)
+    s = run_job(job, [frame], tmp_path / "out")
+    assert s.totals["checked"] == 1
+    out = read_depth_png(key.path(tmp_path / "out", ".png"))
+    near, far = depth == np.float32(z), depth == np.float32(2 * z)
+    assert np.count_nonzero(out[near]) >= 0.95 * np.count_nonzero(near)
+    assert np.count_nonzero(out[far]) <= 0.05 * np.count_nonzero(far)

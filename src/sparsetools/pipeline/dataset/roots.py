@@ -244,15 +244,15 @@ def build_kitti_raw_dataset(
     interpolation when shrinking) with its intrinsics scaled per axis
     (:meth:`~sparsetools.calibration.Calibration.resized_to`), staged in ``.sources/images``
     with per-frame calibrations; the input and the ground truth are projected directly at that
-    size with the scaled calibration (no depth map is resized). monodepth2's KITTI setting is
-    ``(640, 192)``. Without it the images are copied from the tree at their own size.
+    size with the scaled calibration (no depth map is resized; ``gt="accumulated"`` merges
+    its scans at that size and its stereo check matches the pair resized to it, fx scaled).
+    monodepth2's KITTI setting is ``(640, 192)``. Without it the images are copied from the tree at their own size.
 
     Raises
     ------
     UsageError
         ``gt_neighbours`` / ``stereo_check`` / ``icp_min_range`` without ``gt="accumulated"``,
-        ``stereo_check`` with another camera than 2, ``resize_to`` with
-        ``gt="accumulated"``.
+        ``stereo_check`` with another camera than 2.
     FormatError
         ``stereo_check=True`` and a frame without image_03.
     """
@@ -265,9 +265,6 @@ def build_kitti_raw_dataset(
         from ...validate import parse_size
 
         resize_to = parse_size(resize_to, "--resize-to")
-        if gt == "accumulated":
-            raise UsageError("--resize-to does not go with --gt-method accumulated (its stereo "
-                             "check matches the images at their own size)", param="--resize-to")  # fmt: skip
     batch = batch or Batch()
     out = Path(out_dir)
     if not is_kitti_raw(root):
@@ -291,7 +288,7 @@ def build_kitti_raw_dataset(
     elif gt == "accumulated":
         gt_dir, methods, windows, gt_totals = _accumulated_gt(
             root, out, neighbours=gt_neighbours, stereo=stereo_check,
-            icp_min_range=icp_min_range, camera=camera, batch=batch,
+            icp_min_range=icp_min_range, camera=camera, resize_to=resize_to, batch=batch,
         )  # fmt: skip
     sparse = _stage(out, "gt")
     if beams is not None:
@@ -412,7 +409,9 @@ def _check_kitti_raw_gt(gt, neighbours, stereo, icp_min_range, camera) -> None:
         )
 
 
-def _accumulated_gt(root, out: Path, *, neighbours, stereo, icp_min_range, camera, batch):
+def _accumulated_gt(
+    root, out: Path, *, neighbours, stereo, icp_min_range, camera, batch, resize_to=None
+):
     """The accumulate stage (and the stereo stage) of ``--gt-method accumulated``: the folder
     of the ground truth, each sample's ``gt_method`` and window (``t-A..t+B``, clipped at the
     drive's ends), the stages' totals."""
@@ -423,7 +422,7 @@ def _accumulated_gt(root, out: Path, *, neighbours, stereo, icp_min_range, camer
 
     job, frames = accumulation_job(
         [root], window=neighbours, accumulate=AccumulateSettings(occlude_own=True), icp=None,
-        icp_settings=IcpSettings(min_range=icp_min_range), camera=camera,
+        icp_settings=IcpSettings(min_range=icp_min_range), camera=camera, resize_to=resize_to,
     )  # fmt: skip
     job = replace(job, option_aliases=(("window", "--gt-neighbours"),))
     acc_dir = _stage(out, "gt_accumulated")
@@ -463,8 +462,8 @@ def _accumulated_gt(root, out: Path, *, neighbours, stereo, icp_min_range, camer
         return acc_dir, methods, windows, totals
     stereo_frames = [replace(f, depth=f.key.path(acc_dir, ".png")) for f in frames]
     checked_dir = _stage(out, "gt_stereo")
-    s = run_job(StereoCheckJob(right=tuple(sorted(right.items()))), stereo_frames, checked_dir,
-                batch=batch, inputs=[root], desc="stereo")  # fmt: skip
+    check = StereoCheckJob(right=tuple(sorted(right.items())), resize_to=resize_to)
+    s = run_job(check, stereo_frames, checked_dir, batch=batch, inputs=[root], desc="stereo")
     totals["stereo_removed"] = s.totals.get("removed", 0)
     return checked_dir, methods, windows, totals
 
