@@ -4,7 +4,9 @@ A depth map projected with ``--resize S --crop WxH+LEFT+TOP`` needs the camera i
 same way (and its intrinsics, METHODS.md section 0) before a dataset can pair them. Per frame
 this job writes ``OUT/<sequence>/<frame>.png`` (OpenCV area interpolation when shrinking,
 bilinear when enlarging, then the crop) and ``OUT/calib/<sequence>/<frame>.json``: the
-frame's calibration resized and cropped exactly as :mod:`.project` does.
+frame's calibration resized and cropped exactly as :mod:`.project` does. ``resize_to`` brings
+every image to one exact size instead (``dataset kitti-raw --resize-to``: KITTI's drives differ
+in size), each axis scaled by its own factor.
 """
 
 from __future__ import annotations
