@@ -116,6 +116,25 @@ def test_resized_to_needs_the_calibration_size():
         _calib(width=None, height=None).resized_to(640, 192)
 
 
+@pytest.mark.parametrize("kind", ["project", "images", "accumulate"])
+def test_resize_to_is_recorded_only_when_set_and_excludes_resize(kind):
+    from sparsetools.pipeline.accumulate import AccumulateRunSettings
+    from sparsetools.pipeline.camera_images import CameraImageSettings
+    from sparsetools.pipeline.project import ProjectSettings
+    from sparsetools.pipeline.provenance import settings_dict
+
+    cls = {"project": ProjectSettings, "images": CameraImageSettings,
+           "accumulate": AccumulateRunSettings}[kind]  # fmt: skip
+    # folders made before the option resume: their records have no resize_to
+    assert "resize_to" not in settings_dict(cls())
+    assert settings_dict(cls(resize_to="640x192"))["resize_to"] == [640, 192]
+    with pytest.raises(ParameterError, match="--resize-to"):
+        cls(resize_to="640x0")
+    if kind != "accumulate":
+        with pytest.raises(ParameterError, match="exclude each other"):
+            cls(resize=0.5, resize_to=(640, 192))
+
+
 # -- dataset kitti-raw --resize-to -----------------------------------------------------------
 
 
