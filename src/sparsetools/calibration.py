@@ -12,7 +12,7 @@ import numpy as np
 
 from .errors import CalibrationError, ParameterError
 
-__all__ = ["Calibration", "crop_intrinsics", "resize_intrinsics"]
+__all__ = ["Calibration", "crop_intrinsics", "resize_intrinsics", "resize_intrinsics_xy"]
 
 
 def resize_intrinsics(K: np.ndarray, scale: float) -> np.ndarray:
@@ -32,10 +32,32 @@ def resize_intrinsics(K: np.ndarray, scale: float) -> np.ndarray:
     """
     if not np.isfinite(scale) or scale <= 0:
         raise ParameterError(f"resize factor must be > 0, got {scale}")
+    return resize_intrinsics_xy(K, scale, scale)
+
+
+def resize_intrinsics_xy(K: np.ndarray, scale_x: float, scale_y: float) -> np.ndarray:
+    """Intrinsics after resizing the image by ``scale_x`` across and ``scale_y`` down.
+
+    Parameters
+    ----------
+    K : (3, 3) or (3, 4) array
+        Intrinsic matrix (a KITTI ``P`` matrix is accepted; its translation column is scaled too).
+    scale_x, scale_y : float
+        Resize factors of the columns and the rows, > 0 (``W' / W`` and ``H' / H``).
+
+    Returns
+    -------
+    (3, 3) or (3, 4) float64
+        ``fx' = sx fx``, ``cx' = sx (cx + 0.5) - 0.5``, the same for y with ``sy``.
+    """
+    for name, s in (("horizontal", scale_x), ("vertical", scale_y)):
+        if not np.isfinite(s) or s <= 0:
+            raise ParameterError(f"{name} resize factor must be > 0, got {s}")
     # Pixel centres sit at integers, so the grid maps as u' = s (u + 0.5) - 0.5. Written as a
     # left product it also handles a KITTI P whose third row carries a translation.
-    offset = 0.5 * scale - 0.5
-    A = np.array([[scale, 0.0, offset], [0.0, scale, offset], [0.0, 0.0, 1.0]])
+    A = np.array([[scale_x, 0.0, 0.5 * scale_x - 0.5],
+                  [0.0, scale_y, 0.5 * scale_y - 0.5],
+                  [0.0, 0.0, 1.0]])  # fmt: skip
     return A @ np.asarray(K, dtype=np.float64)
 
 
@@ -192,6 +214,27 @@ class Calibration:
         w = None if self.width is None else max(1, round(self.width * scale))
         h = None if self.height is None else max(1, round(self.height * scale))
         return replace(self, K=K, P=P, width=w, height=h)
+
+    def resized_to(self, width: int, height: int) -> Calibration:
+        """Calibration of the image resized to exactly ``width`` x ``height`` pixels.
+
+        Each axis scales by its own factor, ``sx = width / self.width`` and
+        ``sy = height / self.height`` (:func:`resize_intrinsics_xy`): an aspect ratio that
+        changes (monodepth2's 640x192 from KITTI's 1242x375) changes ``fx / fy``.
+
+        Raises
+        ------
+        ParameterError
+            A size that is not two positive integers, or a calibration without a size.
+        """
+        for name, v in (("width", width), ("height", height)):
+            if isinstance(v, bool) or int(v) != v or v <= 0:
+                raise ParameterError(f"resize {name} must be a positive integer, got {v!r}")
+        w0, h0 = self.size
+        sx, sy = int(width) / w0, int(height) / h0
+        K = resize_intrinsics_xy(self.K, sx, sy)
+        P = resize_intrinsics_xy(self.P, sx, sy) if self.P is not None else None
+        return replace(self, K=K, P=P, width=int(width), height=int(height))
 
     def cropped(self, top: int, left: int, height: int, width: int) -> Calibration:
         """Calibration of the crop of ``height`` x ``width`` pixels at (``top``, ``left``)."""

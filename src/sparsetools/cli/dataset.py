@@ -28,6 +28,7 @@ from .options import (
     overwrite_option,
     quiet_debug_options,
     resize_option,
+    resize_to_option,
     seed_option,
     sensor_option,
     split_option,
@@ -370,6 +371,7 @@ def nuscenes(root, out_dir, nuscenes_version, camera, sensor, sweeps, resize, cr
     "by more than 3 px and 5 % of disparity [default: on for frames whose image_03 exists].",
 )  # fmt: skip
 @icp_min_range_option
+@resize_to_option
 @splits_option(dataset="kitti")
 @_split_file_option(
     help="Your own split lists, Eigen form (<date>/<drive> <frame> <l|r>); repeat per split."
@@ -377,7 +379,8 @@ def nuscenes(root, out_dir, nuscenes_version, camera, sensor, sweeps, resize, cr
 @seed_option(help="Seed of the split assignment.")
 @batch_options
 def kitti_raw(root, out_dir, beams, gt_method, filter_occluded, gt_neighbours, stereo_check,
-              icp_min_range, official_split, splits, split_files, seed, batch, as_json):  # fmt: skip
+              icp_min_range, resize_to, official_split, splits, split_files, seed, batch,
+              as_json):  # fmt: skip
     """KITTI raw drives to a dataset: image, N-beam projected LiDAR, LiDAR ground truth.
 
     ROOT is a drive, a date folder (all its drives) or a root of dates. Frames are keyed by
@@ -386,7 +389,8 @@ def kitti_raw(root, out_dir, beams, gt_method, filter_occluded, gt_neighbours, s
     (--split-file). The summary reports the listed frames the tree lacks, drive by drive.
     Ground truth: the full scan (--gt-method scan; --filter-occluded: without its see-through
     points), or accumulated as KITTI's annotated maps (--gt-method accumulated, which always
-    filters occluded points); each row records its gt_method.
+    filters occluded points); each row records its gt_method. --resize-to WxH: every image
+    resized to exactly that size (intrinsics scaled per axis), the maps projected at it.
 
     \b
     Examples:
@@ -395,14 +399,16 @@ def kitti_raw(root, out_dir, beams, gt_method, filter_occluded, gt_neighbours, s
           --split-file train=my_train_files.txt --split-file test=my_test_files.txt
       sparsetools dataset kitti-raw /data/kitti_raw/2011_09_26 -o out/kitti_acc \\
           --gt-method accumulated --icp-min-range 20
+      sparsetools dataset kitti-raw /data/kitti_raw -o out/effis4 --beams 4 --split eigen \\
+          --resize-to 640x192
     """
     from ..pipeline.dataset.roots import build_kitti_raw_dataset
 
     summary = build_kitti_raw_dataset(
         root, out_dir, beams=None if beams == 64 else beams, gt=gt_method,
         filter_occluded=filter_occluded, gt_neighbours=gt_neighbours, stereo_check=stereo_check,
-        icp_min_range=icp_min_range, split=splits, split_files=split_files or None,
-        official_split=official_split, seed=seed,
+        icp_min_range=icp_min_range, resize_to=resize_to, split=splits,
+        split_files=split_files or None, official_split=official_split, seed=seed,
         batch=batch,
     )  # fmt: skip
     _summary(summary, as_json, out_dir)

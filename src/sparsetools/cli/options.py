@@ -57,6 +57,7 @@ __all__ = [
     "positive",
     "quiet_debug_options",
     "resize_option",
+    "resize_to_option",
     "root_flag",
     "seed_option",
     "size_metres",
@@ -181,6 +182,17 @@ def resize_option(f=None, *, help: str | None = None):
             help=help
             or "Scale the image and intrinsics by S first (e.g. 0.5: 1600x900 -> 800x450).",
         )(fn)
+
+    return deco(f) if f is not None else deco
+
+
+def resize_to_option(f=None, *, help: str | None = None):
+    def deco(fn):
+        return click.option(
+            "--resize-to", callback=size_wxh, default=None, metavar="WxH",
+            help=help or "Resize every image to exactly W x H pixels (each axis scaled on its "
+            "own, intrinsics too) and project at that size, e.g. 640x192 (monodepth2).",
+        )(fn)  # fmt: skip
 
     return deco(f) if f is not None else deco
 

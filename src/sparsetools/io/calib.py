@@ -495,6 +495,7 @@ def frame_calibration(
     resize: float | None = None,
     crop: tuple[int, int, int, int] | None = None,
     what: str = "depth map",
+    resize_to: tuple[int, int] | None = None,
 ) -> Calibration:
     """The calibration a frame's map uses: loaded, sized, checked, resized, cropped.
 
@@ -521,6 +522,9 @@ def frame_calibration(
         Then crop (in resized pixels).
     what : str
         What the map is, for the pixel-count message.
+    resize_to : (width, height), optional
+        Instead of ``resize``: bring the image to exactly this size, each axis scaled by its
+        own factor (:meth:`Calibration.resized_to`).
 
     Raises
     ------
@@ -551,8 +555,12 @@ def frame_calibration(
         )
     check_pixel_count(calib.width, calib.height, "image")
     check_principal_point(calib, given_by=given_by)
+    if resize is not None and resize_to is not None:
+        raise ParameterError("give a resize factor or an exact size (--resize-to), not both")
     if resize is not None:
         calib = calib.resized(resize)
+    if resize_to is not None:
+        calib = calib.resized_to(*resize_to)
     if crop is not None:
         top, left, h, w = crop
         calib = calib.cropped(top, left, h, w)

@@ -36,7 +36,7 @@ from ..io.atomic import atomic_path
 from ..io.sources import Frame, FrameKey
 from ..io.sources.poses import accumulation_inputs
 from ..ops.accumulate import AccumulateSettings
-from ..validate import check_int_range, check_non_negative, check_positive
+from ..validate import check_int_range, check_non_negative, check_positive, parse_size
 from .batch import Batch, RunSummary
 from .core import BatchJob, FrameStats, FrameTask, run_job
 from .provenance import clear_recorded, settings_dict
@@ -83,7 +83,9 @@ class AccumulateRunSettings:
 
     ``window`` is K (``--neighbours``: frames t-K..t+K); ``pose_source`` ``icp`` or the kinds :func:`attach_poses` used;
     ``poses_frame`` what a ``--poses`` file holds; ``mask``: masks given; ``icp`` is recorded
-    with its defaults when the poses do not come from ICP.
+    with its defaults when the poses do not come from ICP; ``resize_to`` (``dataset kitti-raw
+    --resize-to``): the maps made at exactly this (width, height), the intrinsics scaled per
+    axis (recorded only when set).
     """
 
     window: int = field(default=5, metadata={"option": "--neighbours"})
@@ -93,9 +95,14 @@ class AccumulateRunSettings:
     image_size: tuple[int, int] | None = None
     icp: IcpSettings = field(default_factory=IcpSettings)
     accumulate: AccumulateSettings = field(default_factory=AccumulateSettings)
+    resize_to: tuple[int, int] | None = field(
+        default=None, metadata={"option": "--resize-to", "omit_default": True}
+    )
 
     def __post_init__(self) -> None:
         check_int_range(self.window, "neighbours", low=0, high=MAX_WINDOW)
+        if self.resize_to is not None:
+            object.__setattr__(self, "resize_to", parse_size(self.resize_to, "--resize-to"))
 
     def record(self) -> tuple[dict, dict]:
         """Flat settings for the folder's record and their option names."""
@@ -124,11 +131,12 @@ class AccumulateInput:
     mask: str | None = None
 
 
-def _calibration(inp: AccumulateInput, image_size) -> Calibration:
+def _calibration(inp: AccumulateInput, image_size, resize_to=None) -> Calibration:
     from ..io.calib import check_sensor, frame_calibration
 
     calib = frame_calibration(calib_path=inp.calib_path, calibration=inp.calibration,
-                              image=inp.image, image_size=image_size)  # fmt: skip
+                              image=inp.image, image_size=image_size,
+                              resize_to=resize_to)  # fmt: skip
     check_sensor(calib, inp.scans[inp.reference])
     return calib
 
@@ -271,7 +279,8 @@ class AccumulateJob(BatchJob[AccumulateInput]):
         f, size = frames[0], self.settings.image_size
         try:
             frame_calibration(calib_path=f.calib, calibration=f.calibration, image_size=size,
-                              image=f.image if size is None else None)  # fmt: skip
+                              image=f.image if size is None else None,
+                              resize_to=self.settings.resize_to)  # fmt: skip
         except ParameterError:
             raise
         except SparsetoolsError:  # that frame's own problem: its job reports it
@@ -351,7 +360,7 @@ class AccumulateJob(BatchJob[AccumulateInput]):
         from ..ops.registration import chain_poses
 
         inp, s = task.inputs, self.settings
-        calib = _calibration(inp, s.image_size)
+        calib = _calibration(inp, s.image_size, s.resize_to)
         scans = [read_points(p) for p in inp.scans]
         if inp.poses is not None:
             poses = np.array([np.reshape(T, (4, 4)) for T in inp.poses])
@@ -365,7 +374,8 @@ class AccumulateJob(BatchJob[AccumulateInput]):
         write_json_calib(task.outputs["calib"], calib, frame=task.frame_id, cloud=list(inp.scans),
                          window=list(inp.frames), pixel_offset=a.pixel_offset,
                          min_depth=a.min_depth, max_depth=a.max_depth,
-                         calibration=calib.source)  # fmt: skip
+                         calibration=calib.source,
+                         **({"resize_to": list(s.resize_to)} if s.resize_to else {}))  # fmt: skip
         c = res.counts
         return AccumulateStats(
             scans=len(scans),
@@ -437,6 +447,7 @@ def accumulation_job(
     mask=None,
     image_size: tuple[int, int] | None = None,
     camera: int = 2,
+    resize_to: tuple[int, int] | None = None,
 ) -> tuple[AccumulateJob, list[Frame]]:
     """The job and frames of an accumulation of ``paths``: what ``sparsetools accumulate``
     runs, and ``dataset kitti-raw --gt accumulated``.
@@ -455,6 +466,8 @@ def accumulation_job(
     icp_settings : IcpSettings, optional
     calib, image, poses, poses_frame, mask, image_size, camera
         As the command's options.
+    resize_to : (width, height), optional
+        The maps at exactly this size (``dataset kitti-raw --resize-to``).
 
     Returns
     -------
@@ -473,5 +486,6 @@ def accumulation_job(
         image_size=image_size,
         icp=IcpSettings() if icp_settings is None else icp_settings,
         accumulate=AccumulateSettings() if accumulate is None else accumulate,
+        resize_to=resize_to,
     )
     return AccumulateJob(settings), inputs.frames

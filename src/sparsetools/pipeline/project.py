@@ -85,6 +85,9 @@ class ProjectSettings:
     filter_occluded : bool
         Drop the points the camera cannot see (see-through points behind a foreground edge,
         :func:`sparsetools.ops.occlusion.filter_occluded` with its defaults) from the map.
+    resize_to : (width, height), optional
+        Instead of ``resize``: bring the image (and intrinsics, each axis by its own factor)
+        to exactly this size first (``dataset kitti-raw --resize-to``).
     """
 
     fmt: str = field(default="png", metadata={"option": "--format"})
@@ -97,6 +100,9 @@ class ProjectSettings:
     image_size: tuple[int, int] | None = None
     filter_occluded: bool = field(
         default=False, metadata={"option": "--filter-occluded", "omit_default": True}
+    )
+    resize_to: tuple[int, int] | None = field(
+        default=None, metadata={"option": "--resize-to", "omit_default": True}
     )
 
     def __post_init__(self) -> None:
@@ -111,6 +117,11 @@ class ProjectSettings:
             object.__setattr__(self, "crop", parse_crop(self.crop))
         if self.image_size is not None:
             object.__setattr__(self, "image_size", parse_size(self.image_size))
+        if self.resize_to is not None:
+            object.__setattr__(self, "resize_to", parse_size(self.resize_to, "--resize-to"))
+            if self.resize is not None:
+                raise ParameterError("--resize and --resize-to exclude each other",
+                                     param="resize_to")  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -154,6 +165,7 @@ def resolve_calibration(inp: ProjectInput, settings: ProjectSettings) -> Calibra
         image_size=settings.image_size,
         resize=settings.resize,
         crop=settings.crop,
+        resize_to=settings.resize_to,
     )
     check_sensor(calib, inp.cloud)
     return calib
@@ -371,6 +383,8 @@ class ProjectJob(BatchJob[ProjectInput]):
             min_depth=s.min_depth,
             max_depth=s.max_depth,
             calibration=calib.source,
+            # only when set: the files of the other settings stay as they were
+            **({"resize_to": list(s.resize_to)} if s.resize_to is not None else {}),
         )
         valid = int(np.count_nonzero(depth))
         reason = None

@@ -6,6 +6,9 @@ the rectified pair (the map's camera and its stereo partner: KITTI ``image_02`` 
 (:func:`sparsetools.io.calib.read_kitti_stereo_rig`), and drop the points whose depth
 disagrees with OpenCV's SGBM disparity (:func:`sparsetools.ops.stereo.stereo_check`).
 A frame without a partner image is written unchanged (``checked`` False in its statistics).
+With ``resize_to`` (maps made at an exact size, ``dataset kitti-raw --resize-to``) both images
+are first resized to the maps' size (area interpolation when shrinking, as the dataset's
+images) and fx scaled with the columns: disparities are then in the maps' pixels.
 
 Outputs per frame, the layout of ``project`` / ``accumulate``: ``OUT/<sequence>/<frame>.png``
 (the checked map, KITTI uint16) and, when the input map's folder has one,
@@ -66,10 +69,13 @@ class StereoCheckJob(BatchJob[StereoCheckInput]):
 
     settings: StereoCheckSettings = field(default_factory=StereoCheckSettings)
     right: tuple[tuple[str, str], ...] = ()
+    resize_to: tuple[int, int] | None = None
 
     def record(self) -> dict:
         flat = {k: v for k, v in settings_dict(self.settings).items() if k != "sgbm"}
         flat.update({f"sgbm_{k}": v for k, v in settings_dict(self.settings.sgbm).items()})
+        if self.resize_to is not None:  # only when set: older folders resume
+            flat["resize_to"] = list(self.resize_to)
         return flat
 
     def tasks(self, frames: list[Frame], out_dir: Path) -> list[FrameTask[StereoCheckInput]]:
@@ -100,6 +106,9 @@ class StereoCheckJob(BatchJob[StereoCheckInput]):
             fx, baseline = read_kitti_stereo_rig(inp.rig)
             # read_image gives RGB; SGBM matches grey levels, the channel order does not matter
             left, right = read_image(inp.left), read_image(inp.right)
+            if self.resize_to is not None:
+                fx *= self.resize_to[0] / left.shape[1]  # disparities scale with the columns
+                left, right = _resized(left, self.resize_to), _resized(right, self.resize_to)
             depth, mask, disparity = stereo_check(depth, left, right, fx=fx, baseline=baseline,
                                                   settings=self.settings)  # fmt: skip
             checked, removed = True, int(np.count_nonzero(mask))
@@ -118,6 +127,16 @@ class StereoCheckJob(BatchJob[StereoCheckInput]):
             "points": sum(st.points for st in stats),
             "removed": sum(st.removed for st in stats),
         }
+
+
+def _resized(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    import cv2
+
+    w, h = size
+    if (image.shape[1], image.shape[0]) == (w, h):
+        return image
+    shrink = w <= image.shape[1] and h <= image.shape[0]
+    return cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
 
 
 def _calib_json_of(depth: Path, key) -> Path | None:

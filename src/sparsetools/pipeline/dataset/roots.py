@@ -42,7 +42,7 @@ NUSCENES_OPTIONS = {
 KITTI_RAW_OPTIONS = {
     "route": "dataset", "beams": "--beams", "gt": "--gt-method", "gt_neighbours": "--gt-neighbours",
     "stereo_check": "--stereo-check/--no-stereo-check", "icp_min_range": "--icp-min-range",
-    "gt_filter_occluded": "--filter-occluded",
+    "gt_filter_occluded": "--filter-occluded", "resize_to": "--resize-to",
 }  # fmt: skip
 KITTI_DC_OPTIONS = {"route": "dataset", "sparse": "--sparse-name", "selection": "--selection"}
 
@@ -214,6 +214,7 @@ def build_kitti_raw_dataset(
     gt_neighbours: int = 5,
     stereo_check: bool | None = None,
     icp_min_range: float = 0.0,
+    resize_to: tuple[int, int] | None = None,
     split: str | None = None,
     split_files=None,
     official_split: str | None = None,
@@ -239,6 +240,14 @@ def build_kitti_raw_dataset(
       points that disagree with SGBM stereo of image_02 / image_03
       (:mod:`sparsetools.ops.stereo`); None: on for the frames whose image_03 exists.
 
+    ``resize_to`` (width, height): every image resized to exactly this size (OpenCV area
+    interpolation when shrinking) with its intrinsics scaled per axis
+    (:meth:`~sparsetools.calibration.Calibration.resized_to`), staged in ``.sources/images``
+    with per-frame calibrations; the input and the ground truth are projected directly at that
+    size with the scaled calibration (no depth map is resized; ``gt="accumulated"`` merges
+    its scans at that size and its stereo check matches the pair resized to it, fx scaled).
+    monodepth2's KITTI setting is ``(640, 192)``. Without it the images are copied from the tree at their own size.
+
     Raises
     ------
     UsageError
@@ -252,6 +261,10 @@ def build_kitti_raw_dataset(
     from ..project import ProjectJob, ProjectSettings
 
     _check_kitti_raw_gt(gt, gt_neighbours, stereo_check, icp_min_range, camera)
+    if resize_to is not None:
+        from ...validate import parse_size
+
+        resize_to = parse_size(resize_to, "--resize-to")
     batch = batch or Batch()
     out = Path(out_dir)
     if not is_kitti_raw(root):
@@ -260,7 +273,7 @@ def build_kitti_raw_dataset(
             "data/ or image_0N/data/ with the calibration pair)"
         )
     frames = cloud_frames([root], camera=camera)
-    project = ProjectJob(ProjectSettings(camera=camera))
+    project = ProjectJob(ProjectSettings(camera=camera, resize_to=resize_to))
     plain_gt = gt == "scan" and not filter_occluded
     if plain_gt or beams is None:  # the scan's projection: the truth, or the 64-beam input
         run_job(project, frames, _stage(out, "gt"), batch=batch, inputs=[root])
@@ -268,14 +281,14 @@ def build_kitti_raw_dataset(
     methods, windows = dict.fromkeys((str(f.key) for f in frames), "scan"), {}
     if gt == "scan" and filter_occluded:
         gt_dir = _stage(out, "gt_occluded")
-        occluded = ProjectJob(ProjectSettings(camera=camera, filter_occluded=True))
+        occluded = ProjectJob(replace(project.settings, filter_occluded=True))
         s = run_job(occluded, frames, gt_dir, batch=batch, inputs=[root], desc="gt")
         methods = dict.fromkeys(methods, "scan+occlusion")
         gt_totals = {"occluded_pixels": s.totals.get("occluded_pixels", 0)}
     elif gt == "accumulated":
         gt_dir, methods, windows, gt_totals = _accumulated_gt(
             root, out, neighbours=gt_neighbours, stereo=stereo_check,
-            icp_min_range=icp_min_range, camera=camera, batch=batch,
+            icp_min_range=icp_min_range, camera=camera, resize_to=resize_to, batch=batch,
         )  # fmt: skip
     sparse = _stage(out, "gt")
     if beams is not None:
@@ -289,6 +302,12 @@ def build_kitti_raw_dataset(
         ]  # fmt: skip
         sparse = _stage(out, f"sparse{beams}")
         run_job(project, beam_frames, sparse, batch=batch)
+    # After the projections, whose records refuse another --resize-to before anything is
+    # written here: the images at the maps' size, with their calibrations.
+    rgb, calib = root, None
+    if resize_to is not None:
+        rgb, calib = _resized_images(frames, out, resize_to, camera=camera, root=root,
+                                     batch=batch)  # fmt: skip
     params = {"route": "kitti-raw", "beams": beams}
     # Recorded only when not the default, so datasets of earlier versions resume.
     if gt != "scan":
@@ -298,6 +317,8 @@ def build_kitti_raw_dataset(
             params["icp_min_range"] = icp_min_range
     if filter_occluded and gt == "scan":  # accumulated always filters: not a setting there
         params["gt_filter_occluded"] = True
+    if resize_to is not None:
+        params["resize_to"] = list(resize_to)
     # The default (one scan) writes the rows 0.2 wrote, byte for byte: no gt_method, which
     # ``dataset info`` reads as ``scan`` for this route.
     per_sample = None
@@ -308,9 +329,10 @@ def build_kitti_raw_dataset(
         }
     summary = build_dataset(
         out,
-        rgb=root,
+        rgb=rgb,
         sparse=sparse,
         gt=gt_dir,
+        calib=calib,
         split=split,
         split_files=split_files,
         official_split=official_split,
@@ -327,6 +349,24 @@ def build_kitti_raw_dataset(
     return summary.with_totals(
         {"gt": {"method": method, "methods": _count(methods.values()), **gt_totals}}
     )
+
+
+def _resized_images(frames, out: Path, size, *, camera, root, batch) -> tuple[Path, Path]:
+    """The images stage of ``--resize-to``: every frame's camera image at ``size`` and its
+    calibration (``.sources/images/calib``), the folders the dataset is built from."""
+    from ...io.calib import load_calibration
+    from ..camera_images import CameraImageJob, CameraImageSettings
+
+    loaded = {}  # one read per calibration folder (a date's pair)
+    for f in frames:
+        if f.image is not None and f.calib not in loaded:
+            loaded[f.calib] = load_calibration(f.calib, camera=camera)
+    with_image = [replace(f, calibration=loaded[f.calib]) for f in frames if f.image is not None]
+    images = _stage(out, "images")
+    if with_image:
+        job = CameraImageJob(CameraImageSettings(resize_to=size))
+        run_job(job, with_image, images, batch=batch, inputs=[root], desc="images")
+    return images, images / "calib"
 
 
 #: The vocabulary of ``generation_params["sample"]["gt_method"]`` (docs/dataset.md).
@@ -369,7 +409,9 @@ def _check_kitti_raw_gt(gt, neighbours, stereo, icp_min_range, camera) -> None:
         )
 
 
-def _accumulated_gt(root, out: Path, *, neighbours, stereo, icp_min_range, camera, batch):
+def _accumulated_gt(
+    root, out: Path, *, neighbours, stereo, icp_min_range, camera, batch, resize_to=None
+):
     """The accumulate stage (and the stereo stage) of ``--gt-method accumulated``: the folder
     of the ground truth, each sample's ``gt_method`` and window (``t-A..t+B``, clipped at the
     drive's ends), the stages' totals."""
@@ -380,7 +422,7 @@ def _accumulated_gt(root, out: Path, *, neighbours, stereo, icp_min_range, camer
 
     job, frames = accumulation_job(
         [root], window=neighbours, accumulate=AccumulateSettings(occlude_own=True), icp=None,
-        icp_settings=IcpSettings(min_range=icp_min_range), camera=camera,
+        icp_settings=IcpSettings(min_range=icp_min_range), camera=camera, resize_to=resize_to,
     )  # fmt: skip
     job = replace(job, option_aliases=(("window", "--gt-neighbours"),))
     acc_dir = _stage(out, "gt_accumulated")
@@ -420,8 +462,8 @@ def _accumulated_gt(root, out: Path, *, neighbours, stereo, icp_min_range, camer
         return acc_dir, methods, windows, totals
     stereo_frames = [replace(f, depth=f.key.path(acc_dir, ".png")) for f in frames]
     checked_dir = _stage(out, "gt_stereo")
-    s = run_job(StereoCheckJob(right=tuple(sorted(right.items()))), stereo_frames, checked_dir,
-                batch=batch, inputs=[root], desc="stereo")  # fmt: skip
+    check = StereoCheckJob(right=tuple(sorted(right.items())), resize_to=resize_to)
+    s = run_job(check, stereo_frames, checked_dir, batch=batch, inputs=[root], desc="stereo")
     totals["stereo_removed"] = s.totals.get("removed", 0)
     return checked_dir, methods, windows, totals
 
