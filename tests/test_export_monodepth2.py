@@ -3,15 +3,13 @@ tree, read back as monodepth2 reads it and compared with a reference written her
 
 from __future__ import annotations
 
-import json
 import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
-from sparsetools.cli.main import cli
+from _cli import one_line_error, run, summary
 from sparsetools.ops.eigen_gt import eigen_depth_map
 
 pytestmark = pytest.mark.real
@@ -19,24 +17,6 @@ pytestmark = pytest.mark.real
 DATE = "2011_09_26"
 DRIVE = f"{DATE}_drive_0001_sync"
 FRAMES = (4, 0, 7)  # split-file order, not sorted
-
-
-def run(*args):
-    return CliRunner().invoke(cli, ["-q", *map(str, args)])
-
-
-def summary(*args) -> dict:
-    r = run(*args, "--json")
-    assert r.exit_code == 0, r.output
-    return json.loads(r.stdout)
-
-
-def one_line_error(result) -> str:
-    assert result.exit_code != 0, result.output
-    assert "Traceback" not in result.output
-    lines = [line for line in result.stderr.splitlines() if line.strip()]
-    assert len(lines) == 1, result.stderr
-    return lines[0]
 
 
 @pytest.fixture(scope="module")

@@ -15,9 +15,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
-from sparsetools.cli.main import cli
+from _cli import run, summary
 
 sys.path.insert(0, str(Path(__file__).parent))
 
@@ -25,16 +24,6 @@ DATE = "2011_09_26"
 DRIVE = f"{DATE}_drive_0001_sync"
 FRAMES = range(3, 8)  # 5 frames of the real sequence
 FX, BASELINE = 721.5377, 0.5327254279298227  # P_rect_02 / P_rect_03 of 2011_09_26
-
-
-def run(*args):
-    return CliRunner().invoke(cli, ["-q", *map(str, args)])
-
-
-def summary(*args) -> dict:
-    r = run(*args, "--json")
-    assert r.exit_code == 0, r.output
-    return json.loads(r.stdout)
 
 
 def rows(ds: Path) -> list[dict]:

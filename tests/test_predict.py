@@ -13,6 +13,7 @@ import pytest
 import torch
 from click.testing import CliRunner
 
+from _cli import one_line_error, run, summary
 from sparsetools.cli.main import cli
 from sparsetools.io.dataset_reader import DatasetReader
 from sparsetools.io.image import read_depth_png, write_depth_png, write_image
@@ -22,24 +23,6 @@ from test_train_inputs import make_confidence_dataset
 TINY = ["--width", "4", "--batch-size", "4", "--epochs", "1", "--threads", "1", "--pictures", "1"]
 DRIVES = ("2011_09_26_drive_0002_sync", "2011_09_28_drive_0037_sync")
 DC_W, DC_H = 1216, 352
-
-
-def run(*args):
-    return CliRunner().invoke(cli, ["-q", *map(str, args)])
-
-
-def summary(*args) -> dict:
-    r = run(*args, "--json")
-    assert r.exit_code == 0, r.output
-    return json.loads(r.stdout)
-
-
-def one_line_error(result) -> str:
-    assert result.exit_code != 0, result.output
-    assert "Traceback" not in result.output
-    lines = [line for line in result.stderr.splitlines() if line.strip()]
-    assert len(lines) == 1, result.stderr
-    return lines[0]
 
 
 @pytest.fixture(scope="module")

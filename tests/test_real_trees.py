@@ -5,31 +5,19 @@ Every frame is kept, outputs are per sequence (drive), and a rerun is a no-op.""
 
 from __future__ import annotations
 
-import json
 import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
-from sparsetools.cli.main import cli
+from _cli import run, summary
 
 pytestmark = pytest.mark.real
 
 DATE = "2011_09_26"
 DRIVES = (f"{DATE}_drive_0001_sync", f"{DATE}_drive_0002_sync")
 N = 3  # frames per drive
-
-
-def run(*args):
-    return CliRunner().invoke(cli, ["-q", *map(str, args)])
-
-
-def summary(*args) -> dict:
-    r = run(*args, "--json")
-    assert r.exit_code == 0, r.output
-    return json.loads(r.stdout)
 
 
 @pytest.fixture(scope="module")

@@ -14,10 +14,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
+from _cli import run, summary
 from sparsetools.calibration import Calibration
-from sparsetools.cli.main import cli
 from sparsetools.errors import ParameterError
 
 DATE = "2011_09_26"
@@ -136,16 +135,6 @@ def test_resize_to_is_recorded_only_when_set_and_excludes_resize(kind):
 
 
 # -- dataset kitti-raw --resize-to -----------------------------------------------------------
-
-
-def run(*args):
-    return CliRunner().invoke(cli, ["-q", *map(str, args)])
-
-
-def summary(*args) -> dict:
-    r = run(*args, "--json")
-    assert r.exit_code == 0, r.output
-    return json.loads(r.stdout)
 
 
 def _values(path: Path) -> dict[str, np.ndarray]:
