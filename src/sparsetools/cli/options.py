@@ -623,6 +623,32 @@ def filter_occluded_option(f):
 
 
 # -- the camera rig and nuScenes ----------------------------------------------------------------
+def cameras_option(f=None, *, help: str):
+    """``--cameras A,B,...``: several cameras of a rig in one dataset (one sample per frame and
+    camera; docs/dataset.md, "Every camera of a rig")."""
+
+    def deco(fn):
+        return click.option("--cameras", default=None, metavar="A,B,...", help=help)(fn)
+
+    return deco(f) if f is not None else deco
+
+
+def store_points_option(f):
+    """``--store-points``: each sample's scan in the camera frame (docs/dataset.md)."""
+    return click.option(
+        "--store-points", "store_points", is_flag=True,
+        help="Store each sample's LiDAR points that land in the image, in the camera frame "
+        "with their ring, in points/part-*.parquet (implies --store-geometry).",
+    )(f)  # fmt: skip
+
+
+def store_geometry_option(f):
+    """``--store-geometry``: the manifest's geometry columns (docs/dataset.md, "Geometry")."""
+    return click.option(
+        "--store-geometry", "store_geometry", is_flag=True,
+        help="Store each sample's geometry in the manifest: K, T_cam_lidar (sensor -> camera), "
+        "for KITTI stereo baseline_m, for nuScenes T_ego_cam and T_world_ego.",
+    )(f)  # fmt: skip
 
 
 def camera_option(f=None, *, default: str | None = None, help: str):
