@@ -401,3 +401,29 @@ def test_random_beams_keeps_only_the_chosen_rings(with_points):
         RandomBeams(keep=(3,))
     with pytest.raises(Exception, match="rings"):
         t(xyz, None, K, h, w)
+
+
+def test_dataset_build_stores_the_calibrations_geometry(tmp_path):
+    """``dataset build --calib`` with --store-geometry: K and T_cam_lidar of the frame's own
+    calibration file (KITTI object form: P2, R0_rect, Tr_velo_to_cam)."""
+    syn = ROOT / "sample_data" / "synthetic"
+    run(["project", syn / "velodyne", "--calib", syn / "calib", "--image", syn / "image_2",
+         "-o", tmp_path / "lidar"])  # fmt: skip
+    out = tmp_path / "ds"
+    run(["dataset", "build", "-o", out, "--rgb", syn / "image_2", "--sparse", tmp_path / "lidar",
+         "--calib", syn / "calib", "--store-geometry"])  # fmt: skip
+    ds = DatasetReader(out)
+    for i in range(len(ds)):
+        kv = _kv(syn / "calib" / f"{ds.row(i).frame}.txt")
+        P = kv["P2"].reshape(3, 4)
+        R0 = np.eye(4)
+        R0[:3, :3] = kv["R0_rect"].reshape(3, 3)
+        Tr = np.vstack([kv["Tr_velo_to_cam"].reshape(3, 4), [0, 0, 0, 1]])
+        g = ds.geometry(i)
+        assert np.array_equal(g["intrinsics"], P[:, :3])
+        np.testing.assert_allclose(g["intrinsics"] @ g["T_cam_lidar"][:3], P @ R0 @ Tr, atol=1e-9)
+        assert g["baseline_m"] is None  # no stereo pair in an object calibration
+    # a rerun without the option is refused, naming it
+    r = run(["dataset", "build", "-o", out, "--rgb", syn / "image_2", "--sparse",
+             tmp_path / "lidar", "--calib", syn / "calib"], code=1)  # fmt: skip
+    assert "--store-geometry" in r.output

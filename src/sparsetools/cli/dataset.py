@@ -228,6 +228,7 @@ def _split_file_option(*, help: str):
     metavar="JSON|FILE",
     help="Generation parameters (JSON object) stored in every new row.",
 )
+@store_geometry_option
 @batch_options
 def build(
     out_dir,
@@ -245,6 +246,7 @@ def build(
     copy,
     source,
     params,
+    store_geometry,
     batch,
     as_json,
 ):
@@ -272,6 +274,7 @@ def build(
     settings = BuildSettings.with_splits(
         splits, split_files, official_split=official_split, sequence_from=sequence_from, seed=seed,
         sparse_format=sparse_format, link=not copy, source=source, params=params,
+        geometry=store_geometry,
     )  # fmt: skip
     found = find_build_inputs(
         settings, rgb=rgb, sparse=sparse, gt=gt, confidence=confidence, calib=calib

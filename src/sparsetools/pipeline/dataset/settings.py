@@ -66,11 +66,11 @@ class BuildSettings:
     split_files: tuple | None = field(default=None, metadata={"option": "--split-file"})
     seed: int = 0
     official_split: str | None = field(default=None, metadata={"option": "--split"})
-    geometry: bool = field(
-        default=False, metadata={"option": "--store-geometry", "omit_default": True}
-    )
     store_points: bool = field(
         default=False, metadata={"option": "--store-points", "omit_default": True}
+    )
+    geometry: bool = field(
+        default=False, metadata={"option": "--store-geometry", "omit_default": True}
     )
 
     def __post_init__(self) -> None:
