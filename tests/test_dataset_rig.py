@@ -427,3 +427,47 @@ def test_dataset_build_stores_the_calibrations_geometry(tmp_path):
     r = run(["dataset", "build", "-o", out, "--rgb", syn / "image_2", "--sparse",
              tmp_path / "lidar", "--calib", syn / "calib"], code=1)  # fmt: skip
     assert "--store-geometry" in r.output
+
+
+def test_points_parts_resume_and_split(raw, tmp_path, monkeypatch):
+    """A rerun is a no-op; parts hold at most POINTS_PER_PART samples; --overwrite rewrites
+    them and leaves no part that no row refers to."""
+    import sparsetools.pipeline.dataset.merge as merge
+
+    monkeypatch.setattr(merge, "POINTS_PER_PART", 3)
+    out = tmp_path / "ds"
+    args = ["dataset", "kitti-raw", raw, "-o", out, "--beams", "64", "--store-points"]
+    run(args)
+    parts = sorted(p.name for p in (out / "points").iterdir())
+    assert parts == ["part-00000.parquet", "part-00001.parquet"]  # 5 samples, 3 + 2
+    manifest = (out / "manifest.parquet").read_bytes()
+    r = CliRunner().invoke(cli, ["-q", *map(str, args), "--json"])
+    assert json.loads(r.stdout)["processed"] == 0
+    assert (out / "manifest.parquet").read_bytes() == manifest
+    run([*args, "--overwrite"])
+    ds = DatasetReader(out)
+    referenced = {ds.row(i).points_parquet for i in range(len(ds))}
+    assert {f"points/{p.name}" for p in (out / "points").iterdir()} == referenced
+    for i in range(len(ds)):  # every row still finds its own points
+        s = ds.sample(i)
+        xyz, _ = ds.points(i)
+        from sparsetools.train.transforms import reproject
+
+        assert np.array_equal(_as_png(reproject(xyz, s["intrinsics"], *s["sparse"].shape)),
+                              s["sparse"])  # fmt: skip
+
+
+def test_the_documented_torch_recipe_loads_samples_without_gt(no_gt):
+    """The DepthDataset of docs/dataset.md ("Loading"), run as written on a dataset without
+    ground truth, through a DataLoader with two workers."""
+    torch = pytest.importorskip("torch")
+    text = (ROOT / "docs" / "dataset.md").read_text()
+    start = text.index("NAN4 = np.full")
+    block = text[text.rindex("```python", 0, start) + len("```python") : text.index("```", start)]
+    block = block.replace('"out/ds"', repr(str(no_gt))).replace('"train"', "None")
+    scope: dict = {}
+    exec(compile(block, "docs/dataset.md", "exec"), scope)
+    batch = next(iter(scope["loader"]))
+    assert batch["has_gt"].tolist() == [False, False]
+    assert torch.count_nonzero(batch["gt"]) == 0 and batch["K"].shape == (2, 3, 3)
+    assert torch.isnan(batch["T_cam_lidar"]).all()

@@ -330,22 +330,45 @@ class DatasetReader:
         if r.points_parquet is None:
             raise FormatError(f"sample '{r.id}' has no stored points (build with --store-points)")
         path = self.path(r.points_parquet, what="points_parquet")
-        table = self._points_tables.get(path)
-        if table is None:
-            from .dataset import read_points_part
-
-            table = read_points_part(path)
-            self._points_tables = {path: table}  # one part at a time: parts are large
-        row = int(r.points_row)
-        if not 0 <= row < table.num_rows or table.column("id")[row].as_py() != r.id:
-            raise FormatError(f"{r.points_parquet} row {row} does not hold sample '{r.id}'")
-        one = table.slice(row, 1)
+        one = self._points_row(path, int(r.points_row))
+        if one.column("id")[0].as_py() != r.id:
+            raise FormatError(
+                f"{r.points_parquet} row {r.points_row} does not hold sample '{r.id}'"
+            )
         xyz = np.stack(
             [one.column(c).combine_chunks().values.to_numpy() for c in ("x", "y", "z")], axis=1
         )
         ring = one.column("ring")
         ring = None if ring.null_count else ring.combine_chunks().values.to_numpy()
         return xyz, ring
+
+    def _points_row(self, path: Path, row: int) -> pa.Table:
+        """One row of a points part, reading only its row group (one group cached: a part
+        holds up to 100 samples of about 0.5 MB each)."""
+        from .dataset import POINTS_SCHEMA
+
+        cache = self._points_tables
+        try:
+            if cache.get("path") != path:
+                pf = pq.ParquetFile(path)
+                starts = [0]
+                for g in range(pf.num_row_groups):
+                    starts.append(starts[-1] + pf.metadata.row_group(g).num_rows)
+                cache.clear()
+                cache.update(path=path, file=pf, starts=starts)
+            starts = cache["starts"]
+            if not 0 <= row < starts[-1]:
+                raise FormatError(f"{path}: no row {row} (the part has {starts[-1]} rows)")
+            g = bisect.bisect_right(starts, row) - 1
+            if cache.get("group") != g:
+                table = cache["file"].read_row_group(g, columns=POINTS_SCHEMA.names)
+                table = table.cast(POINTS_SCHEMA)
+                table.validate(full=True)
+                cache.update(group=g, table=table)
+        except (pa.ArrowException, OSError) as exc:
+            cache.clear()
+            raise FormatError(f"{path}: cannot read the points part ({brief_error(exc)})") from exc
+        return cache["table"].slice(row - starts[g], 1)
 
     def camera_ids(self, key: int | str) -> dict[str | None, str]:
         """The ids of the cameras of a sample's frame, by camera: every row of this reader

@@ -41,6 +41,8 @@ __all__ = ["merge_staged"]
 
 log = logging.getLogger(__name__)
 
+#: Samples per points part at most (about 0.5 MB each for a KITTI scan's image points).
+POINTS_PER_PART = 100
 _PART_RE = re.compile(r"^part-(\d{5,})\.parquet$")
 
 
@@ -247,8 +249,9 @@ def _merge_points(out, contained, old_rows, kept, new_rows, gone, changes, frame
         new_part(sub, [r.id for r in rows])
     size_of = {r.id: (r.height, r.width) for r in new_rows}
     ids = sorted(staged)
-    for start in range(0, len(ids), frames_per_part):
-        chunk = ids[start : start + frames_per_part]
+    per_part = min(frames_per_part, POINTS_PER_PART)
+    for start in range(0, len(ids), per_part):
+        chunk = ids[start : start + per_part]
         clouds = []
         for fid in chunk:
             arr = np.load(staged[fid], allow_pickle=False)
