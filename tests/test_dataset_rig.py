@@ -471,3 +471,20 @@ def test_the_documented_torch_recipe_loads_samples_without_gt(no_gt):
     assert batch["has_gt"].tolist() == [False, False]
     assert torch.count_nonzero(batch["gt"]) == 0 and batch["K"].shape == (2, 3, 3)
     assert torch.isnan(batch["T_cam_lidar"]).all()
+
+
+def test_nuscenes_one_camera_geometry_keeps_todays_ids(real_dir, tmp_path):
+    root = tmp_path / "nuscenes"
+    meta = build_tree(real_dir, root, cameras=("CAM_FRONT", "CAM_BACK"))
+    out = tmp_path / "ds"
+    run(["dataset", "nuscenes", root, "-o", out, "--gt-sensor", "none", "--store-geometry"])
+    ds = DatasetReader(out)
+    assert len(ds) == 1 and ds.ids[0] == f"scene-0061/{ds.row(0).frame}"  # CAM_FRONT only
+    assert ds.row(0).camera is None
+    c = meta["cameras"]["CAM_FRONT"]
+    g = ds.geometry(0)
+    np.testing.assert_allclose(g["T_ego_cam"], c["cam2ego"], atol=1e-6)
+    np.testing.assert_allclose(g["T_world_ego"], c["ego_cam"], atol=1e-6)
+    # the sparse input is RADAR_FRONT: T_cam_lidar is the radar -> camera chain, not LiDAR
+    assert g["T_cam_lidar"] is not None and not np.allclose(g["T_cam_lidar"], c["lidar2cam"])
+    assert ds.row(0).source == "radar_front"

@@ -273,8 +273,9 @@ def camera_points(cloud_path: str, calib) -> np.ndarray:
     (N, 4) float64
         x, y, z in the frame of :func:`camera_frame_transform` (``T_cam_lidar @ x``, metres,
         computed as :func:`sparsetools.ops.projection.transform_points`), then the ring
-        (:func:`sparsetools.ops.rings.recover_rings`, 64 lasers, scan order; -1 when the scan
-        is not a 64-ring scan). A point lands when ``z > 0.1`` m and ``K`` puts it inside
+        (:func:`sparsetools.ops.rings.recover_rings`, 64 lasers, scan order, which falls back
+        to elevation with a warning for a scan that is not in scan order; -1 for all when the
+        rings cannot be recovered at all, e.g. an empty scan). A point lands when ``z > 0.1`` m and ``K`` puts it inside
         the image (``project``'s rule).
     """
     from ...errors import ParameterError
