@@ -488,3 +488,27 @@ def test_nuscenes_one_camera_geometry_keeps_todays_ids(real_dir, tmp_path):
     # the sparse input is RADAR_FRONT: T_cam_lidar is the radar -> camera chain, not LiDAR
     assert g["T_cam_lidar"] is not None and not np.allclose(g["T_cam_lidar"], c["lidar2cam"])
     assert ds.row(0).source == "radar_front"
+
+
+def test_a_camera_missing_for_some_frames_is_counted(raw, tmp_path):
+    part = tmp_path / "raw"
+    shutil.copytree(raw, part)
+    drive = next(iter(DRIVES))
+    (part / DATE / drive / "image_03" / "data" / "0000000001.png").unlink()
+    out = tmp_path / "ds"
+    r = CliRunner().invoke(cli, ["-q", "dataset", "kitti-raw", str(part), "-o", str(out),
+                                 "--beams", "64", "--cameras", "image_02,image_03", "--json"])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    summary = json.loads(r.stdout)
+    n = sum(len(f) for f in DRIVES.values())
+    assert summary["samples"] == 2 * n - 1 and summary["unmatched"]["missing_camera"] == 1
+    ds = DatasetReader(out)
+    assert sorted(ds.cameras(f"{drive}/image_02/0000000001")) == ["image_02"]
+    # a camera with no image at all is refused before any stage runs
+    for p in (part / DATE).glob("*/image_03"):
+        shutil.rmtree(p)
+    out2 = tmp_path / "ds2"
+    r = run(["dataset", "kitti-raw", part, "-o", out2, "--cameras", "image_02,image_03"],
+            code=1)  # fmt: skip
+    assert "--cameras" in r.output and "image_03" in r.output
+    assert not (out2 / ".sources").exists()

@@ -7,7 +7,9 @@ layout's order, ``<drive>/image_03/0000000005``: a split-file line names its cam
 and the sample's files sit under ``rgb/<sequence>/<camera>/``). A sample's cameras share its
 sequence, so splits by sequence keep them together; split lists (whose lines name one camera:
 KITTI ``l`` / ``r``) give a frame the split of its first camera listed, in ``--cameras``
-order, and every camera of the frame follows it.
+order, and every camera of the frame follows it. A frame that some camera lacks keeps the
+cameras it has; the summary counts the missing (frame, camera) pairs (``unmatched``'s
+``missing_camera``).
 """
 
 from __future__ import annotations
@@ -124,6 +126,11 @@ def find_rig_inputs(settings: BuildSettings, cameras: Sequence[CameraInputs]) ->
             unmatched[k] = unmatched.get(k, 0) + v
         roots += [r for r in found.roots if r not in roots]
         seconds += found.seconds
+    # a frame some camera lacks (no image, no map) is kept with the cameras it has: counted
+    have: dict[tuple[str, str], int] = {}
+    for x in frames:
+        have[x.sequence, x.frame] = have.get((x.sequence, x.frame), 0) + 1
+    unmatched["missing_camera"] = sum(len(cameras) - n for n in have.values())
     split_lists = None
     if lists is not None:
         assignment, split_lists = split_file_assignments(

@@ -356,6 +356,11 @@ def build_kitti_raw_dataset(
         )
     plain_gt = gt == "scan" and not filter_occluded
     rig = len(cams) > 1
+    if rig:  # every camera's images found before any stage runs
+        from ...io.sources import index_input
+
+        for c in cams:
+            index_input(root, "image", option="--cameras", camera=c)
     staged = {
         c: _kitti_raw_stages(
             root, out, camera=c, suffix=f"_image_0{c}" if rig else "", beams=beams, gt=gt,
