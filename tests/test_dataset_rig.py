@@ -206,7 +206,7 @@ def nus_rig(real_dir, tmp_path_factory):
     meta = build_tree(real_dir, root, cameras=CAMERAS)
     out = root.parent / "ds"
     run(["dataset", "nuscenes", root, "-o", out, "--cameras", "all", "--sensor", "LIDAR_TOP",
-         "--gt-sensor", "none", "--store-geometry"])  # fmt: skip
+         "--gt-sensor", "none", "--store-points"])  # fmt: skip
     return out, meta
 
 
@@ -512,3 +512,40 @@ def test_a_camera_missing_for_some_frames_is_counted(raw, tmp_path):
             code=1)  # fmt: skip
     assert "--cameras" in r.output and "image_03" in r.output
     assert not (out2 / ".sources").exists()
+
+
+def test_nuscenes_stored_points_reproject_to_each_cameras_map(nus_rig):
+    """LIDAR_TOP of the demo sample, stored for each of the six cameras: re-projected with
+    each camera's K, the camera's stored map; the rings are the .pcd.bin's ring column."""
+    from sparsetools.train.transforms import reproject
+
+    out, _ = nus_rig
+    ds = DatasetReader(out)
+    sizes = []
+    for i in range(len(ds)):
+        s = ds.sample(i)
+        xyz, ring = ds.points(i)
+        assert ring is not None and 0 <= ring.min() and ring.max() < 32
+        again = reproject(xyz, s["intrinsics"], *s["sparse"].shape)
+        assert np.array_equal(_as_png(again), s["sparse"])
+        assert np.count_nonzero(again) == ds.row(i).n_sparse > 0
+        sizes.append(len(xyz))
+    assert len(set(sizes)) == 6  # six cameras, six different fields of view
+
+
+def test_nuscenes_radar_points_with_resize_and_crop(real_dir, tmp_path):
+    """The radar paper's setting (800x450, top 100 rows cut): the 61 devkit-filtered radar
+    points that land, without rings, re-project with the stored (resized, cropped) K to the
+    stored map."""
+    from sparsetools.train.transforms import reproject
+
+    root = tmp_path / "nuscenes"
+    build_tree(real_dir, root)
+    out = tmp_path / "ds"
+    run(["dataset", "nuscenes", root, "-o", out, "--store-points", "--resize", "0.5",
+         "--crop", "800x350+0+100"])  # fmt: skip
+    ds = DatasetReader(out)
+    s = ds.sample(0)
+    xyz, ring = ds.points(0)
+    assert ring is None and len(xyz) == 61 and s["sparse"].shape == (350, 800)
+    assert np.array_equal(_as_png(reproject(xyz, s["intrinsics"], 350, 800)), s["sparse"])

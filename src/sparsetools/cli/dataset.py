@@ -322,10 +322,11 @@ def _summary(summary, as_json, out_dir) -> None:
 @cameras_option(help="Several cameras, one sample per key frame and camera, ids "
                 "<scene>/<channel>/<token>: all, or channels (CAM_FRONT,CAM_BACK,...).")  # fmt: skip
 @store_geometry_option
+@store_points_option
 @batch_options
 def nuscenes(root, out_dir, nuscenes_version, camera, sensor, sweeps, resize, crop, gt_sensor,
              gt_sweeps, filter_occluded, jbf, scenes, night, official_split, splits, split_files,
-             seed, cameras, store_geometry, batch,
+             seed, cameras, store_geometry, store_points, batch,
              as_json):  # fmt: skip
     """nuScenes samples to a dataset: camera image, radar (or LiDAR) input, LiDAR truth.
 
@@ -355,7 +356,7 @@ def nuscenes(root, out_dir, nuscenes_version, camera, sensor, sweeps, resize, cr
         scenes=tuple(s.strip() for s in scenes.split(",")) if scenes else None,
         night=night, split=splits, split_files=split_files or None,
         official_split=official_split, seed=seed, cameras=rig, geometry=store_geometry,
-        batch=batch,
+        store_points=store_points, batch=batch,
     )  # fmt: skip
     _summary(summary, as_json, out_dir)
 

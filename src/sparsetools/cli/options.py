@@ -637,8 +637,8 @@ def store_points_option(f):
     """``--store-points``: each sample's scan in the camera frame (docs/dataset.md)."""
     return click.option(
         "--store-points", "store_points", is_flag=True,
-        help="Store each sample's LiDAR points that land in the image, in the camera frame "
-        "with their ring, in points/part-*.parquet (implies --store-geometry).",
+        help="Store each sample's sensor points (sweeps merged) that land in the image, in the "
+        "camera frame with their ring, in points/part-*.parquet (implies --store-geometry).",
     )(f)  # fmt: skip
 
 

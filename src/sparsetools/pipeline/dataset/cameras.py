@@ -117,7 +117,7 @@ def find_rig_inputs(settings: BuildSettings, cameras: Sequence[CameraInputs]) ->
         )  # fmt: skip
         extra = dict(cam.extra)
         for x in found.frames:
-            fields = {name: values.get(x.id) for name, values in extra.items()}
+            fields = {name: values[x.id] for name, values in extra.items() if x.id in values}
             frames.append(
                 replace(x, id=camera_id(x.id, cam.name), camera=cam.name,
                         calib_camera=cam.index, split=None, **fields)

@@ -157,11 +157,14 @@ def build_nuscenes_dataset(
         poses = {cam: nuscenes_camera_poses(root, version=version, camera=cam) for cam in cams}
 
     def extra(cam) -> tuple:
-        if not poses:
-            return ()
-        p = poses[cam]
-        return (("T_ego_cam", {k: v[0] for k, v in p.items()}),
-                ("T_world_ego", {k: v[1] for k, v in p.items()}))  # fmt: skip
+        out = ()
+        if poses:
+            p = poses[cam]
+            out += (("T_ego_cam", {k: v[0] for k, v in p.items()}),
+                    ("T_world_ego", {k: v[1] for k, v in p.items()}))  # fmt: skip
+        if store_points:
+            out += (("cloud", staged[cam].clouds), ("sweeps", staged[cam].sweeps))
+        return out
 
     inputs = [
         CameraInputs(cam, rgb=st.images, sparse=st.sparse, gt=st.gt, confidence=st.confidence,
@@ -178,7 +181,7 @@ def build_nuscenes_dataset(
                                   confidence=c.confidence, calib=c.calib)  # fmt: skip
         fields = dict(c.extra)
         found = replace(found, frames=[
-            replace(x, **{name: v.get(x.id) for name, v in fields.items()})
+            replace(x, **{name: v[x.id] for name, v in fields.items() if x.id in v})
             for x in found.frames
         ])  # fmt: skip
         sample_params = staged[cams[0]].sample_params
@@ -211,6 +214,8 @@ class _NuscenesStages:
     sample_params: dict
     merged: dict
     gt_totals: dict
+    clouds: dict
+    sweeps: dict
 
 
 def _nuscenes_stages(root, out: Path, *, camera, suffix, version, sensor, sweeps, resize, crop,
@@ -265,7 +270,10 @@ def _nuscenes_stages(root, out: Path, *, camera, suffix, version, sensor, sweeps
                              calib=images_dir / "calib")  # fmt: skip
         run_job(JbfJob(), radar, _stage(out, "jbf" + suffix), batch=batch)
         sparse = confidence = _stage(out, "jbf" + suffix)
-    return _NuscenesStages(images_dir, sparse, gt, confidence, sample_params, merged, gt_totals)
+    clouds = {str(f.key): str(f.cloud) for f in frames}
+    sweeps_of = {str(f.key): tuple(f.sweeps) for f in frames}
+    return _NuscenesStages(images_dir, sparse, gt, confidence, sample_params, merged, gt_totals,
+                           clouds, sweeps_of)  # fmt: skip
 
 
 def sweeps_summary(requested: int, merged) -> dict:

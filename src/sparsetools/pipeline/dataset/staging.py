@@ -265,31 +265,48 @@ def calibration_geometry(calib, calib_path: str, camera: int) -> dict:
     return out
 
 
-def camera_points(cloud_path: str, calib) -> np.ndarray:
+def camera_points(cloud_path: str, calib, *, sweeps=()) -> np.ndarray:
     """A scan's points that land in the calibration's image, in the camera frame, with rings.
+
+    Parameters
+    ----------
+    cloud_path : str
+        The key sweep (KITTI ``.bin``, nuScenes ``.pcd.bin`` or radar ``.pcd``).
+    calib : Calibration
+        The stored image's calibration (sensor -> camera, sized).
+    sweeps : tuple of Sweep
+        Earlier sweeps merged as ``project`` merges them
+        (:func:`sparsetools.pipeline.project.load_frame_points`).
 
     Returns
     -------
     (N, 4) float64
         x, y, z in the frame of :func:`camera_frame_transform` (``T_cam_lidar @ x``, metres,
-        computed as :func:`sparsetools.ops.projection.transform_points`), then the ring
-        (:func:`sparsetools.ops.rings.recover_rings`, 64 lasers, scan order, which falls back
-        to elevation with a warning for a scan that is not in scan order; -1 for all when the
-        rings cannot be recovered at all, e.g. an empty scan). A point lands when ``z > 0.1`` m and ``K`` puts it inside
-        the image (``project``'s rule).
+        computed as :func:`sparsetools.ops.projection.transform_points`), then the ring:
+        KITTI ``.bin``: :func:`sparsetools.ops.rings.recover_rings`, 64 lasers, scan order
+        (elevation, with a warning, for a scan that is not in scan order); nuScenes
+        ``.pcd.bin``: its ring column (32 lasers); -1 where there is none (radar) or it
+        cannot be recovered (an empty scan). A point lands when ``z > 0.1`` m and ``K``
+        puts it inside the image (``project``'s rule).
     """
     from ...errors import ParameterError
-    from ...io.pointcloud import read_points
+    from ...io.pointcloud import cloud_kind
     from ...ops.projection import transform_points
     from ...ops.rings import recover_rings
+    from ..project import load_frame_points
 
-    pts = read_points(cloud_path)
+    pts = load_frame_points(cloud_path, sweeps)
     K, T = camera_frame_transform(calib)
     xyz = transform_points(pts, T)
+    kind = cloud_kind(cloud_path)
+    ring = np.full(len(pts), -1.0)
     try:
-        ring = recover_rings(pts, n_lasers=64, method="scan-order").astype(np.float64)
+        if kind == "kitti-bin":
+            ring = recover_rings(pts, n_lasers=64, method="scan-order").astype(np.float64)
+        elif kind == "nuscenes-bin":
+            ring = recover_rings(pts, n_lasers=32, method="column", column=4).astype(np.float64)
     except ParameterError:
-        ring = np.full(len(pts), -1.0)
+        pass
     w, h = calib.size
     with np.errstate(all="ignore"):
         z = xyz[:, 2]
@@ -340,8 +357,10 @@ class DatasetFrameInput:
         Row-major camera -> ego and ego -> world transforms (nuScenes), stored with
         ``--store-geometry``.
     cloud : str, optional
-        The sensor's point cloud (KITTI ``velodyne_points/data/<frame>.bin``), stored in the
-        camera frame with ``--store-points``.
+        The sensor's point cloud (KITTI ``velodyne_points/data/<frame>.bin``, a nuScenes key
+        sweep), stored in the camera frame with ``--store-points``.
+    sweeps : tuple of Sweep
+        The earlier sweeps merged into ``cloud`` (nuScenes), as ``project`` merges them.
     """
 
     id: str
@@ -365,12 +384,13 @@ class DatasetFrameInput:
     T_ego_cam: tuple[float, ...] | None = None
     T_world_ego: tuple[float, ...] | None = None
     cloud: str | None = None
+    sweeps: tuple = ()
 
     @property
     def sources(self) -> tuple[Path, ...]:
         """The input files whose identity decides whether the frame is up to date."""
         files = (self.rgb, self.sparse_table or self.sparse, self.gt, self.confidence, self.calib,
-                 self.cloud)  # fmt: skip
+                 self.cloud, *(sw.path for sw in self.sweeps))  # fmt: skip
         return tuple(Path(f) for f in files if f is not None)
 
 
@@ -510,7 +530,7 @@ def stage_frame(
     if "points" in rel:
         if x.calib is None:
             raise FormatError(f"frame {fid}: --store-points needs the frame's calibration")
-        cloud = timed("t_encode", camera_points, x.cloud, calib)
+        cloud = timed("t_encode", camera_points, x.cloud, calib, sweeps=x.sweeps)
         writes.append((_npy_bytes(cloud), None, outputs["points"]))
     if settings.params:
         params["params"] = settings.params
