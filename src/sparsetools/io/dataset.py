@@ -9,6 +9,10 @@ Layout (METHODS.md section 6; docs/dataset.md has the full schema table)::
       sparse/part-00000.parquet sparse depth as points, one row per frame (parquet|both)
       gt/<id>.png|.npy          ground-truth depth (optional)
       confidence/<id>.png|.npy  confidence map, e.g. jbf-expand's (optional)
+      points/part-00000.parquet sensor points in the camera frame (--store-points; POINTS_SCHEMA)
+
+The columns of :data:`OPTIONAL_SCHEMA` (camera of a rig, geometry, points) follow
+:data:`MANIFEST_SCHEMA`'s, each written only when some row has a value.
 
 Every path stored in the manifest is relative to ``DATASET``, uses ``/`` and may not be
 absolute or contain ``..``: :func:`check_relative_path` rejects such a path when the manifest

@@ -103,7 +103,8 @@ def build_nuscenes_dataset(
     sample per key frame and camera, ids ``<scene>/<channel>/<sample token>`` (:mod:`.cameras`);
     None or one: ``camera``, ids ``<scene>/<sample token>`` as before. ``geometry``: the
     geometry columns (``K``, ``T_cam_lidar``: the sensor's points to the camera at its time,
-    ``T_ego_cam``, ``T_world_ego`` at the camera's time).
+    ``T_ego_cam``, ``T_world_ego`` at the camera's time); ``store_points``: the sensor's
+    points too, sweeps merged as the sparse input merges them (``points/part-*.parquet``).
 
     Raises
     ------
