@@ -37,8 +37,18 @@ def _pose(token: str, T: np.ndarray, ts: int) -> dict:
             "translation": [float(v) for v in T[:3, 3]]}  # fmt: skip
 
 
-def build_tree(real: Path, root: Path) -> dict:
-    """Write the tree under ``root``; return the names and matrices a test needs."""
+CAMERAS = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_BACK", "CAM_BACK_LEFT",
+           "CAM_BACK_RIGHT")  # fmt: skip
+
+
+def build_tree(real: Path, root: Path, *, cameras: tuple[str, ...] = ("CAM_FRONT",)) -> dict:
+    """Write the tree under ``root``; return the names and matrices a test needs.
+
+    ``cameras``: the camera channels the sample has (default CAM_FRONT only, the tree as it
+    always was); the other five are the demo's real images with their calibration and the
+    ego pose at each camera's time derived from the info as CAM_FRONT's is. The return value
+    then has ``cameras``: per channel its ``file``, ``ego_cam`` (ego -> global at the camera's
+    time), ``cam2ego`` and ``lidar2cam``."""
     radar_dir, demo = real / "nuscenes-radar", real / "nuscenes-mmdet3d-demo"
     tables = root / "v1.0-mini"
     tables.mkdir(parents=True)
@@ -96,6 +106,30 @@ def build_tree(real: Path, root: Path) -> dict:
          "calibrated_sensor_token": lidar_cs, "filename": f"samples/LIDAR_TOP/{lidar_file}",
          "timestamp": lidar_ts, "width": 0, "height": 0, **common},
     ]  # fmt: skip
+    extra = {}
+    for ch in cameras:
+        c = info["cameras"][ch]
+        c2e = np.array(c["cam2ego"], dtype=np.float64)
+        l2c = np.array(c["lidar2cam"], dtype=np.float64)
+        e_c = ego_lidar @ lidar2ego @ np.linalg.inv(l2c) @ np.linalg.inv(c2e)
+        extra[ch] = {"file": root / "samples" / ch / c["file"], "ego_cam": e_c,
+                     "cam2ego": c2e, "lidar2cam": l2c}  # fmt: skip
+        if ch == "CAM_FRONT":
+            continue
+        (root / "samples" / ch).mkdir(parents=True, exist_ok=True)
+        shutil.copy(demo / c["file"], root / "samples" / ch / c["file"])
+        fx = c["cam2img"][0][0]
+        ts = round(c["timestamp_s"] * 1e6)
+        token = f"derived-ego-{ch.lower()}"
+        poses.append(_pose(token, e_c, ts))
+        sample_data.append(
+            {"token": c["sample_data_token"], "ego_pose_token": token,
+             "calibrated_sensor_token": cs_token(
+                 ch, lambda r, fx=fx: r["camera_intrinsic"]
+                 and abs(r["camera_intrinsic"][0][0] - fx) < 1e-3),
+             "filename": f"samples/{ch}/{c['file']}", "timestamp": ts, "width": 1600,
+             "height": 900, **common}
+        )  # fmt: skip
     note = {"_note": "DERIVED for the sparsetools tests (see tests/_nuscenes_tree.py)"}
     (tables / "ego_pose.json").write_text(json.dumps([{**p, **note} for p in poses]))
     (tables / "sample_data.json").write_text(json.dumps([{**s, **note} for s in sample_data]))
@@ -107,4 +141,5 @@ def build_tree(real: Path, root: Path) -> dict:
         "lidar2cam": lidar2cam,
         "lidar2ego": lidar2ego,
         "ego_lidar": ego_lidar,
+        **({"cameras": extra} if tuple(cameras) != ("CAM_FRONT",) else {}),
     }

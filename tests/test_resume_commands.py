@@ -262,7 +262,8 @@ def _without_parts(digests: dict) -> dict:
 def _dataset_content(ds: Path) -> tuple[dict, dict, dict]:
     """A dataset's manifest rows (but where their points are stored), its metadata and each
     sample's sparse points."""
-    from sparsetools.io.dataset import part_rows, read_manifest, read_sparse_part
+    from sparsetools.io.dataset import read_manifest
+    from sparsetools.io.dataset_parts import part_rows, read_sparse_part
 
     table, info = read_manifest(ds / "manifest.parquet")
     rows = {

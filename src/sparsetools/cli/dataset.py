@@ -12,6 +12,7 @@ from .options import (
     batch_options,
     calib_option,
     camera_option,
+    cameras_option,
     checked,
     crop_option,
     deprecated,
@@ -32,6 +33,8 @@ from .options import (
     seed_option,
     sensor_option,
     split_option,
+    store_geometry_option,
+    store_points_option,
     sweeps_option,
     threads_option,
 )
@@ -226,6 +229,7 @@ def _split_file_option(*, help: str):
     metavar="JSON|FILE",
     help="Generation parameters (JSON object) stored in every new row.",
 )
+@store_geometry_option
 @batch_options
 def build(
     out_dir,
@@ -243,6 +247,7 @@ def build(
     copy,
     source,
     params,
+    store_geometry,
     batch,
     as_json,
 ):
@@ -270,6 +275,7 @@ def build(
     settings = BuildSettings.with_splits(
         splits, split_files, official_split=official_split, sequence_from=sequence_from, seed=seed,
         sparse_format=sparse_format, link=not copy, source=source, params=params,
+        geometry=store_geometry,
     )  # fmt: skip
     found = find_build_inputs(
         settings, rgb=rgb, sparse=sparse, gt=gt, confidence=confidence, calib=calib
@@ -314,10 +320,14 @@ def _summary(summary, as_json, out_dir) -> None:
 @_split_file_option(help="Scene list (one scene name per line); repeat per split. The split "
                     "name comes from NAME= or the file name (train/val/test).")  # fmt: skip
 @seed_option(help="Seed of the split assignment.")
+@cameras_option(help="Several cameras, one sample per key frame and camera, ids "
+                "<scene>/<channel>/<token>: all, or channels (CAM_FRONT,CAM_BACK,...).")  # fmt: skip
+@store_geometry_option
+@store_points_option
 @batch_options
 def nuscenes(root, out_dir, nuscenes_version, camera, sensor, sweeps, resize, crop, gt_sensor,
              gt_sweeps, filter_occluded, jbf, scenes, night, official_split, splits, split_files,
-             seed, batch,
+             seed, cameras, store_geometry, store_points, batch,
              as_json):  # fmt: skip
     """nuScenes samples to a dataset: camera image, radar (or LiDAR) input, LiDAR truth.
 
@@ -334,15 +344,20 @@ def nuscenes(root, out_dir, nuscenes_version, camera, sensor, sweeps, resize, cr
       sparsetools dataset nuscenes /data/nuscenes -o out/nus_radar --sweeps 5 \\
           --resize 0.5 --crop 800x350+0+100 --jbf --split official
     """
-    from ..pipeline.dataset.roots import build_nuscenes_dataset
+    from ..pipeline.dataset.cameras import parse_cameras
+    from ..pipeline.dataset.roots import NUSCENES_CAMERAS, build_nuscenes_dataset
 
+    if cameras is not None and camera != "CAM_FRONT":
+        raise click.UsageError("give --camera or --cameras, not both")
+    rig = parse_cameras(cameras, NUSCENES_CAMERAS, option="--cameras") or None
     summary = build_nuscenes_dataset(
         root, out_dir, version=nuscenes_version, camera=camera, sensor=sensor, sweeps=sweeps,
         resize=resize, crop=crop, gt_sensor=None if gt_sensor.lower() == "none" else gt_sensor,
         gt_sweeps=gt_sweeps, filter_occluded=filter_occluded, jbf=jbf,
         scenes=tuple(s.strip() for s in scenes.split(",")) if scenes else None,
         night=night, split=splits, split_files=split_files or None,
-        official_split=official_split, seed=seed, batch=batch,
+        official_split=official_split, seed=seed, cameras=rig, geometry=store_geometry,
+        store_points=store_points, batch=batch,
     )  # fmt: skip
     _summary(summary, as_json, out_dir)
 
@@ -377,10 +392,15 @@ def nuscenes(root, out_dir, nuscenes_version, camera, sensor, sweeps, resize, cr
     help="Your own split lists, Eigen form (<date>/<drive> <frame> <l|r>); repeat per split."
 )
 @seed_option(help="Seed of the split assignment.")
+@cameras_option(help="Several cameras, one sample per frame and camera, ids "
+                "<drive>/<camera>/<frame>: e.g. image_02,image_03 (default: image_02 alone, "
+                "ids <drive>/<frame>).")  # fmt: skip
+@store_geometry_option
+@store_points_option
 @batch_options
 def kitti_raw(root, out_dir, beams, gt_method, filter_occluded, gt_neighbours, stereo_check,
-              icp_min_range, resize_to, official_split, splits, split_files, seed, batch,
-              as_json):  # fmt: skip
+              icp_min_range, resize_to, official_split, splits, split_files, seed, cameras,
+              store_geometry, store_points, batch, as_json):  # fmt: skip
     """KITTI raw drives to a dataset: image, N-beam projected LiDAR, LiDAR ground truth.
 
     ROOT is a drive, a date folder (all its drives) or a root of dates. Frames are keyed by
@@ -402,14 +422,17 @@ def kitti_raw(root, out_dir, beams, gt_method, filter_occluded, gt_neighbours, s
       sparsetools dataset kitti-raw /data/kitti_raw -o out/effis4 --beams 4 --split eigen \\
           --resize-to 640x192
     """
+    from ..pipeline.dataset.cameras import parse_cameras
     from ..pipeline.dataset.roots import build_kitti_raw_dataset
 
+    names = ("image_00", "image_01", "image_02", "image_03")
+    rig = tuple(int(c[-1]) for c in parse_cameras(cameras, names, option="--cameras"))
     summary = build_kitti_raw_dataset(
         root, out_dir, beams=None if beams == 64 else beams, gt=gt_method,
         filter_occluded=filter_occluded, gt_neighbours=gt_neighbours, stereo_check=stereo_check,
         icp_min_range=icp_min_range, resize_to=resize_to, split=splits,
         split_files=split_files or None, official_split=official_split, seed=seed,
-        batch=batch,
+        cameras=rig or None, geometry=store_geometry, store_points=store_points, batch=batch,
     )  # fmt: skip
     _summary(summary, as_json, out_dir)
 

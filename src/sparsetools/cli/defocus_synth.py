@@ -7,19 +7,21 @@ from pathlib import Path
 import click
 
 from ..ops.defocus import DEFOCUS_CAMERAS, KERNELS, MISSING_MODES
+from .noise_options import (
+    color_bias_option,
+    depth_option,
+    noise_option,
+    noise_profile_option,
+    ratio_option,
+)
 from .options import (
     batch_options,
     calib_option,
-    color_bias_option,
     deprecated,
-    depth_option,
     emit_summary,
-    noise_option,
-    noise_profile_option,
     output_dir_option,
     pair,
     positive,
-    ratio_option,
     seed_option,
 )
 

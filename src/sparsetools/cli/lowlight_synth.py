@@ -11,20 +11,22 @@ from pathlib import Path
 
 import click
 
-from .options import (
-    batch_options,
-    calib_option,
+from .noise_options import (
     color_bias_option,
-    deprecated,
     depth_option,
-    emit_summary,
     noise_cameras,
     noise_option,
     noise_profile_option,
+    ratio_option,
+)
+from .options import (
+    batch_options,
+    calib_option,
+    deprecated,
+    emit_summary,
     output_dir_option,
     pair,
     positive,
-    ratio_option,
     seed_option,
 )
 

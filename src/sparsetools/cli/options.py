@@ -524,79 +524,7 @@ def batch_options(f):
     return functools.reduce(lambda acc, d: d(acc), reversed(decorators), command)
 
 
-# -- sensor noise and depth inputs (lowlight-synth, defocus-synth) ---------------------------------
-
-
-def depth_option(f=None, *, help: str, required: bool = False):
-    """``--depth``: a depth map (one image) or a folder of depth maps matched by frame."""
-
-    def deco(fn):
-        return click.option(
-            "--depth", required=required, type=click.Path(exists=True, path_type=Path), help=help
-        )(fn)
-
-    return deco(f) if f is not None else deco
-
-
-def noise_option(f=None, *, default: str = "eld"):
-    """``--noise``: the ELD read-noise model, or none."""
-    from ..ops.noise import NOISE_MODELS
-
-    def deco(fn):
-        return click.option(
-            "--noise",
-            type=click.Choice(NOISE_MODELS),
-            default=default,
-            show_default=True,
-            help="Sensor noise: ELD (Tukey-lambda read noise), Gaussian read noise (ELD's "
-            "separate Gaussian fit), or none.",
-        )(fn)
-
-    return deco(f) if f is not None else deco
-
-
-def noise_cameras() -> tuple[str, ...]:
-    """ELD noise tables shipped with the package, and ``random`` (one per image)."""
-    from ..ops.noise import CAMERA_PROFILES
-
-    return (*CAMERA_PROFILES, "random")
-
-
-def noise_profile_option(f):
-    """``--noise-profile``: the ELD noise table (a camera's measured noise)."""
-    return click.option(
-        "--noise-profile",
-        type=click.Choice(noise_cameras()),
-        default="SonyA7S2",
-        show_default=True,
-        help="ELD noise profile: the camera whose measured noise is added (random: one per image).",
-    )(f)
-
-
-def ratio_option(f=None, *, default: str = "2,32"):
-    """``--ratio``: exposure ratio range of the noise."""
-
-    def deco(fn):
-        return click.option(
-            "--ratio",
-            callback=pair(low=0, strict=True),
-            default=default,
-            show_default=True,
-            metavar="MIN,MAX",
-            help="Exposure ratio ~ logU: higher = darker raw signal, more visible noise.",
-        )(fn)
-
-    return deco(f) if f is not None else deco
-
-
-def color_bias_option(f):
-    """``--color-bias``: add the noise table's per-channel black-level offsets."""
-    return click.option(
-        "--color-bias",
-        is_flag=True,
-        help="Add the ELD table's per-channel black-level offsets of the drawn calibration "
-        "row (with the noise).",
-    )(f)
+# -- projection geometry -------------------------------------------------------------------------
 
 
 def pixel_offset_option(f):
@@ -635,6 +563,32 @@ def filter_occluded_option(f):
 
 
 # -- the camera rig and nuScenes ----------------------------------------------------------------
+def cameras_option(f=None, *, help: str):
+    """``--cameras A,B,...``: several cameras of a rig in one dataset (one sample per frame and
+    camera; docs/dataset.md, "Every camera of a rig")."""
+
+    def deco(fn):
+        return click.option("--cameras", default=None, metavar="A,B,...", help=help)(fn)
+
+    return deco(f) if f is not None else deco
+
+
+def store_points_option(f):
+    """``--store-points``: each sample's scan in the camera frame (docs/dataset.md)."""
+    return click.option(
+        "--store-points", "store_points", is_flag=True,
+        help="Store each sample's sensor points (sweeps merged) that land in the image, in the "
+        "camera frame with their ring, in points/part-*.parquet (implies --store-geometry).",
+    )(f)  # fmt: skip
+
+
+def store_geometry_option(f):
+    """``--store-geometry``: the manifest's geometry columns (docs/dataset.md, "Geometry")."""
+    return click.option(
+        "--store-geometry", "store_geometry", is_flag=True,
+        help="Store each sample's geometry in the manifest: K, T_cam_lidar (sensor -> camera), "
+        "for KITTI stereo baseline_m, for nuScenes T_ego_cam and T_world_ego.",
+    )(f)  # fmt: skip
 
 
 def camera_option(f=None, *, default: str | None = None, help: str):

@@ -9,6 +9,10 @@ Layout (METHODS.md section 6; docs/dataset.md has the full schema table)::
       sparse/part-00000.parquet sparse depth as points, one row per frame (parquet|both)
       gt/<id>.png|.npy          ground-truth depth (optional)
       confidence/<id>.png|.npy  confidence map, e.g. jbf-expand's (optional)
+      points/part-00000.parquet sensor points in the camera frame (--store-points; POINTS_SCHEMA)
+
+The columns of :data:`OPTIONAL_SCHEMA` (camera of a rig, geometry, points) follow
+:data:`MANIFEST_SCHEMA`'s, each written only when some row has a value.
 
 Every path stored in the manifest is relative to ``DATASET``, uses ``/`` and may not be
 absolute or contain ``..``: :func:`check_relative_path` rejects such a path when the manifest
@@ -25,7 +29,7 @@ import dataclasses
 import hashlib
 import json
 import os
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
@@ -38,11 +42,15 @@ from .atomic import atomic_path
 from .image import decode_depth_png, read_depth_png
 
 __all__ = [
+    "FULL_SCHEMA",
     "MANIFEST_NAME",
     "MANIFEST_SCHEMA",
     "METADATA_INFO_KEY",
     "METADATA_VERSION_KEY",
+    "OPTIONAL_SCHEMA",
     "PART_SCHEMA",
+    "POINTS_DIR",
+    "POINTS_SCHEMA",
     "SCHEMA_VERSION",
     "SPARSE_DIR",
     "ManifestRow",
@@ -57,10 +65,8 @@ __all__ = [
     "read_confidence_file",
     "read_depth_file",
     "read_manifest",
-    "read_sparse_part",
     "resolve_in_dataset",
     "write_manifest",
-    "write_sparse_part",
 ]
 
 #: Version of the manifest / part layout. Bump on any incompatible change.
@@ -110,6 +116,27 @@ MANIFEST_SCHEMA = pa.schema(
     ]
 )
 
+#: Optional columns (sparsetools 0.4, same schema version): a manifest holds one of them only
+#: when some row has a value (so a dataset built without them is byte for byte as before),
+#: and a manifest without them reads with them null. Cameras of a rig and each sample's
+#: geometry (docs/dataset.md, "Geometry"); 4x4 transforms are row-major.
+OPTIONAL_SCHEMA = pa.schema(
+    [
+        pa.field("camera", pa.string()),
+        pa.field("K", pa.list_(pa.float64(), 9)),
+        pa.field("T_cam_lidar", pa.list_(pa.float64(), 16)),
+        pa.field("T_ego_cam", pa.list_(pa.float64(), 16)),
+        pa.field("T_world_ego", pa.list_(pa.float64(), 16)),
+        pa.field("baseline_m", pa.float64()),
+        pa.field("points_parquet", pa.string()),
+        pa.field("points_row", pa.int32()),
+    ]
+)
+#: Every column a manifest may hold: :data:`MANIFEST_SCHEMA`, then :data:`OPTIONAL_SCHEMA`.
+FULL_SCHEMA = pa.schema([*MANIFEST_SCHEMA, *OPTIONAL_SCHEMA])
+#: The columns holding a tuple of floats (a matrix) in :class:`ManifestRow`.
+MATRIX_COLUMNS = ("T_world_cam", "K", "T_cam_lidar", "T_ego_cam", "T_world_ego")
+
 
 @dataclass(frozen=True, slots=True)
 class ManifestRow:
@@ -154,6 +181,23 @@ class ManifestRow:
         Seconds (schema version 2).
     T_world_cam : tuple of 16 float, optional
         Row-major camera pose (schema version 2).
+    camera : str, optional
+        The camera of the rig (``image_03``, ``CAM_BACK``) in a dataset of several cameras.
+    K : tuple of 9 float, optional
+        Row-major 3x3 intrinsics of the stored image, pixels (rectified for KITTI).
+    T_cam_lidar : tuple of 16 float, optional
+        Row-major 4x4 rigid transform from the depth sensor's frame (LiDAR, radar) to this
+        camera's frame, metres: ``x_cam = T_cam_lidar @ x_sensor``; with ``K`` it projects
+        the sensor's points to this image.
+    T_ego_cam, T_world_ego : tuple of 16 float, optional
+        nuScenes: camera -> ego vehicle frame, and ego -> world (global) frame at the
+        camera's timestamp, metres.
+    baseline_m : float, optional
+        KITTI stereo: distance from this camera to its stereo partner, metres.
+    points_parquet : str, optional
+        The ``points/part-*.parquet`` holding the sample's points in the camera frame
+        (``--store-points``), at row ``points_row``.
+    points_row : int, optional
     """
 
     id: str
@@ -185,6 +229,15 @@ class ManifestRow:
     frame_index: int | None
     timestamp: float | None
     T_world_cam: tuple[float, ...] | None
+    # -- optional columns (OPTIONAL_SCHEMA): one block, keep it last
+    camera: str | None = None
+    K: tuple[float, ...] | None = None
+    T_cam_lidar: tuple[float, ...] | None = None
+    T_ego_cam: tuple[float, ...] | None = None
+    T_world_ego: tuple[float, ...] | None = None
+    baseline_m: float | None = None
+    points_parquet: str | None = None
+    points_row: int | None = None
 
     def __getitem__(self, name: str):
         """``row["n_sparse"]``: a column by name, as the dict rows of sparsetools 0.2 read."""
@@ -196,33 +249,41 @@ class ManifestRow:
     def to_dict(self) -> dict:
         """The row as a dict in schema order (``T_world_cam`` as a list): JSON-ready."""
         out = {name: getattr(self, name) for name in _ROW_FIELDS}
-        if self.T_world_cam is not None:
-            out["T_world_cam"] = list(self.T_world_cam)
+        for name in MATRIX_COLUMNS:
+            if out[name] is not None:
+                out[name] = list(out[name])
         return out
 
     @classmethod
     def from_dict(cls, row: Mapping) -> ManifestRow:
         """A row from a mapping of column -> value (missing columns are empty, others ignored)."""
-        values = [row.get(name) for name in _ROW_FIELDS]
-        if values[-1] is not None:
-            values[-1] = tuple(values[-1])
-        return cls(*values)
+        values = {name: row.get(name) for name in _ROW_FIELDS}
+        for name in MATRIX_COLUMNS:
+            if values[name] is not None:
+                values[name] = tuple(values[name])
+        return cls(**values)
 
     @staticmethod
     def to_table(rows: Iterable[ManifestRow]) -> pa.Table:
-        """The rows as an Arrow table of exactly :data:`MANIFEST_SCHEMA` (columns, order, types)."""
+        """The rows as an Arrow table of :data:`MANIFEST_SCHEMA` (columns, order, types), then
+        the columns of :data:`OPTIONAL_SCHEMA` that some row fills."""
         rows = list(rows)
-        columns = [
-            pa.array([getattr(r, f.name) for r in rows], type=f.type) for f in MANIFEST_SCHEMA
-        ]
-        return pa.Table.from_arrays(columns, schema=MANIFEST_SCHEMA)
+        fields = [*MANIFEST_SCHEMA]
+        fields += [f for f in OPTIONAL_SCHEMA if any(getattr(r, f.name) is not None for r in rows)]
+        columns = [pa.array([getattr(r, f.name) for r in rows], type=f.type) for f in fields]
+        return pa.Table.from_arrays(columns, schema=pa.schema(fields))
 
     @classmethod
     def from_table(cls, table: pa.Table) -> list[ManifestRow]:
-        """The rows of a manifest table (columns beyond :data:`MANIFEST_SCHEMA` are ignored)."""
-        columns = [table.column(name).to_pylist() for name in _ROW_FIELDS]
-        columns[-1] = [None if m is None else tuple(m) for m in columns[-1]]
-        return [cls(*values) for values in zip(*columns, strict=True)]
+        """The rows of a manifest table (optional columns it lacks are None; columns beyond
+        :data:`FULL_SCHEMA` are ignored)."""
+        n = table.num_rows
+        names = [name for name in _ROW_FIELDS if name in table.column_names]
+        columns = {name: table.column(name).to_pylist() for name in names}
+        for name in MATRIX_COLUMNS:
+            if name in columns:
+                columns[name] = [None if m is None else tuple(m) for m in columns[name]]
+        return [cls(**{name: columns[name][i] for name in names}) for i in range(n)]
 
 
 #: ManifestRow's fields: MANIFEST_SCHEMA's names, in its order (a test holds them equal).
@@ -239,7 +300,26 @@ PART_SCHEMA = pa.schema(
     ]
 )
 
+#: Folder of the points parts (``--store-points``).
+POINTS_DIR = "points"
+#: One row per sample: its sensor points in the camera frame (``T_cam_lidar @ x``), float64
+#: metres, the points that land in the image; ``ring``: each point's laser (0 = highest),
+#: null when the sensor has none (radar) or it is unknown.
+POINTS_SCHEMA = pa.schema(
+    [
+        pa.field("id", pa.string(), nullable=False),
+        pa.field("x", pa.list_(pa.float64()), nullable=False),
+        pa.field("y", pa.list_(pa.float64()), nullable=False),
+        pa.field("z", pa.list_(pa.float64()), nullable=False),
+        pa.field("ring", pa.list_(pa.int16())),
+        pa.field("height", pa.int32(), nullable=False),
+        pa.field("width", pa.int32(), nullable=False),
+    ]
+)
+
 PATH_COLUMNS = ("rgb_path", "sparse_path", "sparse_parquet", "gt_path", "confidence_path")
+#: Path columns of :data:`OPTIONAL_SCHEMA`, checked like :data:`PATH_COLUMNS` when present.
+OPTIONAL_PATH_COLUMNS = ("points_parquet",)
 
 
 def brief_error(exc: BaseException) -> str:
@@ -447,10 +527,18 @@ def read_confidence_file(path: str | os.PathLike) -> np.ndarray:
 def write_manifest(path: str | os.PathLike, table: pa.Table, *, info: dict | None = None) -> None:
     """Write a manifest table atomically, with the schema version in the key-value metadata.
 
-    Every path column is checked with :func:`check_relative_path` first.
+    Every path column is checked with :func:`check_relative_path` first. The columns of
+    :data:`OPTIONAL_SCHEMA` are written only when some row holds a value in them.
     """
-    table = table.cast(MANIFEST_SCHEMA)
-    for col in PATH_COLUMNS:
+    # An optional column is written only when some row has a value (docs: OPTIONAL_SCHEMA).
+    optional = [
+        f
+        for f in OPTIONAL_SCHEMA
+        if f.name in table.column_names and table.column(f.name).null_count < table.num_rows
+    ]
+    table = table.select([*MANIFEST_SCHEMA.names, *(f.name for f in optional)])
+    table = table.cast(pa.schema([*MANIFEST_SCHEMA, *optional]))
+    for col in (*PATH_COLUMNS, *(c for c in OPTIONAL_PATH_COLUMNS if c in table.column_names)):
         for rel in table.column(col).to_pylist():
             if rel is not None:
                 check_relative_path(rel, what=col)
@@ -503,6 +591,9 @@ def read_manifest(path: str | os.PathLike) -> tuple[pa.Table, dict]:
         if version < 2 and name not in table.column_names:
             typ = MANIFEST_SCHEMA.field(name).type
             table = table.append_column(name, pa.nulls(table.num_rows, type=typ))
+    for f in OPTIONAL_SCHEMA:  # optional columns: absent when no row has a value
+        if f.name not in table.column_names:
+            table = table.append_column(f, pa.nulls(table.num_rows, type=f.type))
     missing = [f.name for f in MANIFEST_SCHEMA if f.name not in table.column_names]
     if missing:
         raise FormatError(f"{path}: manifest lacks column(s) {', '.join(missing)}")
@@ -514,10 +605,10 @@ def read_manifest(path: str | os.PathLike) -> tuple[pa.Table, dict]:
         raise FormatError(f"{path}: corrupt dataset metadata (not a JSON object)")
     info["schema_version"] = version
     try:
-        extra = [c for c in table.column_names if c not in MANIFEST_SCHEMA.names]
-        table = table.select([*MANIFEST_SCHEMA.names, *extra])
+        extra = [c for c in table.column_names if c not in FULL_SCHEMA.names]
+        table = table.select([*FULL_SCHEMA.names, *extra])
         table = table.cast(
-            pa.schema([*MANIFEST_SCHEMA, *(table.schema.field(c) for c in extra)], metadata=meta),
+            pa.schema([*FULL_SCHEMA, *(table.schema.field(c) for c in extra)], metadata=meta),
         )
         table.validate(full=True)  # Parquet does not check that strings are UTF-8
     except (pa.ArrowInvalid, pa.ArrowNotImplementedError) as exc:
@@ -529,7 +620,7 @@ def read_manifest(path: str | os.PathLike) -> tuple[pa.Table, dict]:
         dup = sorted({i for i in ids if ids.count(i) > 1})
         raise FormatError(f"{path}: duplicate sample id(s) {', '.join(dup[:5])}")
     _check_manifest_values(table, path)
-    for col in PATH_COLUMNS:
+    for col in (*PATH_COLUMNS, *OPTIONAL_PATH_COLUMNS):
         for rel in table.column(col).to_pylist():
             if rel is not None:
                 check_relative_path(rel, what=f"{path.name} column {col}")
@@ -558,47 +649,3 @@ def _check_manifest_values(table: pa.Table, path: Path) -> None:
         raise FormatError(f"{path}: a sample refers to a sparse part without a valid sparse_row")
     if (table.column("n_sparse").to_numpy() < 0).any():
         raise FormatError(f"{path}: a sample has a negative n_sparse")
-
-
-def write_sparse_part(
-    path: str | os.PathLike, table: pa.Table, *, row_group_size: int = 32
-) -> None:
-    """Write a sparse-points part (:data:`PART_SCHEMA`, zstd) atomically."""
-    table = table.cast(PART_SCHEMA)
-    with atomic_path(path) as tmp:
-        pq.write_table(table, tmp, compression="zstd", row_group_size=row_group_size)
-
-
-def read_sparse_part(path: str | os.PathLike) -> pa.Table:
-    """Read a whole sparse-points part, checking its columns."""
-    try:
-        table = pq.read_table(path)
-    except (pa.ArrowException, OSError) as exc:
-        raise FormatError(f"{path}: cannot read the sparse part ({brief_error(exc)})") from exc
-    missing = [n for n in PART_SCHEMA.names if n not in table.column_names]
-    if missing:
-        raise FormatError(f"{path}: sparse part lacks column(s) {', '.join(missing)}")
-    try:
-        table = table.select(PART_SCHEMA.names).cast(PART_SCHEMA)
-        table.validate(full=True)
-        return table
-    except (pa.ArrowInvalid, pa.ArrowNotImplementedError) as exc:
-        raise FormatError(
-            f"{path}: sparse part columns have unexpected types ({brief_error(exc)})"
-        ) from exc
-
-
-def part_rows(
-    table: pa.Table,
-) -> Iterator[tuple[str, np.ndarray, np.ndarray, np.ndarray, int, int]]:
-    """Iterate ``(id, u, v, depth, height, width)`` over a part table without Python per point."""
-    ids = table.column("id").to_pylist()
-    heights = table.column("height").to_numpy()
-    widths = table.column("width").to_numpy()
-    cols = []
-    for name in ("u", "v", "depth"):
-        arr = table.column(name).combine_chunks()
-        cols.append((arr.offsets.to_numpy(), arr.values.to_numpy(zero_copy_only=False)))
-    for i, fid in enumerate(ids):
-        u, v, d = (vals[off[i] : off[i + 1]] for off, vals in cols)
-        yield fid, u, v, d, int(heights[i]), int(widths[i])

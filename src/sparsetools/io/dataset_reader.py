@@ -22,13 +22,13 @@ from .dataset import (
     ManifestRow,
     brief_error,
     depth_to_points,
-    part_rows,
     points_to_depth,
     read_confidence_file,
     read_depth_file,
     read_manifest,
     resolve_in_dataset,
 )
+from .dataset_parts import part_rows
 from .image import read_depth_png, read_image
 
 __all__ = ["DatasetReader"]
@@ -129,7 +129,11 @@ class DatasetReader:
         self.manifest = table
         self._rows = ManifestRow.from_table(table)
         self._index = {r.id: i for i, r in enumerate(self._rows)}
+        self._by_frame: dict[tuple[str, str], list[int]] = {}
+        for i, r in enumerate(self._rows):
+            self._by_frame.setdefault((r.sequence, r.frame), []).append(i)
         self._parts = _PartCache()
+        self._points_tables: dict = {}
 
     # -- container protocol
     def __len__(self) -> int:
@@ -145,11 +149,13 @@ class DatasetReader:
     def __getstate__(self):
         state = self.__dict__.copy()
         state["_parts"] = None
+        state["_points_tables"] = {}
         return state
 
     def __setstate__(self, state):
         self.__dict__.update(state)
         self._parts = _PartCache()
+        self._points_tables: dict = {}
 
     def __repr__(self) -> str:
         where = f", split={self.split_name!r}" if self.split_name else ""
@@ -235,7 +241,12 @@ class DatasetReader:
             ``sparse`` (H, W) float32 metres, 0 = empty (from the Parquet points when
             present: bit-exact, else from the PNG);
             ``gt`` (H, W) float32 metres or None; ``confidence`` (H, W) float32 or None;
-            ``intrinsics`` (3, 3) float64 K or None.
+            ``intrinsics`` (3, 3) float64 K or None (the ``K`` column when stored, else
+            from fx, fy, cx, cy);
+            ``camera`` (str or None: the rig's camera in a dataset of several);
+            the geometry where stored, else None (datasets built without it, schema 2):
+            ``T_cam_lidar``, ``T_ego_cam``, ``T_world_ego``, ``T_world_cam`` (4, 4) float64
+            and ``baseline_m`` (float, metres); see :meth:`geometry`.
         """
         r = self.row(key)
         rgb = self._checked(read_image(self.path(r.rgb_path, what="rgb_path")), r, "rgb")
@@ -254,23 +265,127 @@ class DatasetReader:
                 r,
                 "confidence",
             )
-        K = None
-        if r.fx is not None:
-            K = np.array(
-                [[r.fx, 0.0, r.cx], [0.0, r.fy, r.cy], [0.0, 0.0, 1.0]],
-                dtype=np.float64,
-            )
         return {
             "id": r.id,
             "sequence": r.sequence,
             "frame": r.frame,
             "split": r.split,
+            "camera": r.camera,
             "rgb": rgb,
             "sparse": sparse,
             "gt": gt,
             "confidence": confidence,
-            "intrinsics": K,
+            **self.geometry(key),
         }
+
+    def geometry(self, key: int | str) -> dict:
+        """A sample's geometry from its manifest row (no file is read).
+
+        Returns
+        -------
+        dict
+            ``intrinsics`` (3, 3) float64 K in pixels: the ``K`` column when stored, else
+            built from fx, fy, cx, cy, else None;
+            ``T_cam_lidar`` (sensor -> camera), ``T_ego_cam`` (camera -> ego),
+            ``T_world_ego`` (ego -> world), ``T_world_cam`` (camera -> world): (4, 4)
+            float64, metres, or None where the dataset does not store them;
+            ``baseline_m``: float or None.
+        """
+        r = self.row(key)
+        K = None
+        if r.K is not None:
+            K = np.array(r.K, dtype=np.float64).reshape(3, 3)
+        elif r.fx is not None:
+            K = np.array(
+                [[r.fx, 0.0, r.cx], [0.0, r.fy, r.cy], [0.0, 0.0, 1.0]],
+                dtype=np.float64,
+            )
+        out = {"intrinsics": K}
+        for name in ("T_cam_lidar", "T_ego_cam", "T_world_ego", "T_world_cam"):
+            m = getattr(r, name)
+            out[name] = None if m is None else np.array(m, dtype=np.float64).reshape(4, 4)
+        out["baseline_m"] = r.baseline_m
+        return out
 
     def samples(self, keys: Sequence[int | str]) -> list[dict]:
         return [self.sample(k) for k in keys]
+
+    def points(self, key: int | str) -> tuple[np.ndarray, np.ndarray | None]:
+        """A sample's stored points (``--store-points``): the sensor's points that land in
+        its image, in the camera frame.
+
+        Returns
+        -------
+        xyz : (N, 3) float64
+            Metres, ``T_cam_lidar @ x_sensor``: ``K @ xyz.T`` projects them to this image.
+        ring : (N,) int16 or None
+            Each point's laser (0 = highest), None when unknown.
+
+        Raises
+        ------
+        FormatError
+            The sample has no stored points, or its part does not hold it.
+        """
+        r = self.row(key)
+        if r.points_parquet is None:
+            raise FormatError(f"sample '{r.id}' has no stored points (build with --store-points)")
+        path = self.path(r.points_parquet, what="points_parquet")
+        one = self._points_row(path, int(r.points_row))
+        if one.column("id")[0].as_py() != r.id:
+            raise FormatError(
+                f"{r.points_parquet} row {r.points_row} does not hold sample '{r.id}'"
+            )
+        xyz = np.stack(
+            [one.column(c).combine_chunks().values.to_numpy() for c in ("x", "y", "z")], axis=1
+        )
+        ring = one.column("ring")
+        ring = None if ring.null_count else ring.combine_chunks().values.to_numpy()
+        return xyz, ring
+
+    def _points_row(self, path: Path, row: int) -> pa.Table:
+        """One row of a points part, reading only its row group (one group cached: a part
+        holds up to 100 samples of about 0.5 MB each)."""
+        from .dataset import POINTS_SCHEMA
+
+        cache = self._points_tables
+        try:
+            if cache.get("path") != path:
+                pf = pq.ParquetFile(path)
+                starts = [0]
+                for g in range(pf.num_row_groups):
+                    starts.append(starts[-1] + pf.metadata.row_group(g).num_rows)
+                cache.clear()
+                cache.update(path=path, file=pf, starts=starts)
+            starts = cache["starts"]
+            if not 0 <= row < starts[-1]:
+                raise FormatError(f"{path}: no row {row} (the part has {starts[-1]} rows)")
+            g = bisect.bisect_right(starts, row) - 1
+            if cache.get("group") != g:
+                table = cache["file"].read_row_group(g, columns=POINTS_SCHEMA.names)
+                table = table.cast(POINTS_SCHEMA)
+                table.validate(full=True)
+                cache.update(group=g, table=table)
+        except (pa.ArrowException, OSError) as exc:
+            cache.clear()
+            raise FormatError(f"{path}: cannot read the points part ({brief_error(exc)})") from exc
+        return cache["table"].slice(row - starts[g], 1)
+
+    def camera_ids(self, key: int | str) -> dict[str | None, str]:
+        """The ids of the cameras of a sample's frame, by camera: every row of this reader
+        with the same sequence and frame (``{None: id}`` in a one-camera dataset)."""
+        r = self.row(key)
+        return {self._rows[i].camera: self._rows[i].id for i in self._by_frame[r.sequence, r.frame]}
+
+    def cameras(self, key: int | str) -> dict[str | None, dict]:
+        """The samples of every camera of a sample's frame, by camera name.
+
+        ``reader.cameras("drive/image_02/0000000005")`` gives ``{"image_02": {...},
+        "image_03": {...}}`` (each as :meth:`sample`); the rows of one frame are those with
+        the same ``sequence`` and ``frame``. In a one-camera dataset the key is None.
+        """
+        return {cam: self.sample(fid) for cam, fid in self.camera_ids(key).items()}
+
+    def frames(self) -> list[tuple[str, str]]:
+        """The (sequence, frame) pairs of this reader, in the order of their first row: one
+        per frame however many cameras it has (iterate these to train on whole rigs)."""
+        return list(self._by_frame)

@@ -52,6 +52,7 @@ __all__ = [
     "project_uvz",
     "rigid_inverse",
     "sparse_from_depth",
+    "transform_points",
 ]
 
 # -- the z-buffer ---------------------------------------------------------------------------------
@@ -317,6 +318,30 @@ def project_points_with_index(
 
         zbuffer_index(points, M, lo, hi, offset, depth, index)
     return depth, index
+
+
+def transform_points(points: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Points moved by a rigid transform, in float64 and in the z-buffer's operation order.
+
+    Parameters
+    ----------
+    points : (N, C) float, metres
+        x, y, z in the first three columns.
+    T : (4, 4) float
+        Row-major transform (e.g. ``T_cam_lidar``).
+
+    Returns
+    -------
+    (N, 3) float64
+        ``T[r, 0] x + T[r, 1] y + T[r, 2] z + T[r, 3]`` per row ``r``, left to right, as
+        :func:`project_points` computes its rows: with ``T``'s third row equal to a
+        projection's, the depth is bit for bit the one that projection gives.
+    """
+    points = _check_points(points)
+    T = np.asarray(T, dtype=np.float64)
+    check_shape(T, "(4, 4)", "T")
+    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    return np.stack([_affine_row(T, r, x, y, z) for r in range(3)], axis=1)
 
 
 def sparse_from_depth(depth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -174,6 +174,13 @@ def resolve_calibration(inp: ProjectInput, settings: ProjectSettings) -> Calibra
 # -- the per-frame job ---------------------------------------------------------------------------
 
 
+def load_frame_points(cloud, sweeps=()) -> np.ndarray:
+    """The points a frame projects: the key sweep ``cloud`` and its earlier ``sweeps``
+    (:class:`~sparsetools.io.sources.Sweep`) moved into its sensor frame, as this job reads
+    them (``dataset --store-points`` stores the same points)."""
+    return _load_points(ProjectInput(str(cloud), tuple(sweeps)))
+
+
 def _load_points(inp: ProjectInput) -> np.ndarray:
     from ..io.pointcloud import read_points
     from ..ops.projection import accumulate_sweeps

@@ -24,6 +24,7 @@ from .config import CONFIDENCE_MODES
 
 __all__ = [
     "DepthDataset",
+    "SampleDataset",
     "augment_sample",
     "bottom_centre_crop",
     "check_confidence",
@@ -362,6 +363,70 @@ class DepthDataset(Dataset):
         }
         if self.with_confidence:
             item["confidence"] = torch.from_numpy(np.ascontiguousarray(maps[2], np.float32)[None])
+        return item
+
+
+#: The 4x4 transforms a :class:`SampleDataset` item carries (NaN where not stored).
+TRANSFORMS = ("T_cam_lidar", "T_ego_cam", "T_world_ego", "T_world_cam")
+
+
+class SampleDataset(Dataset):
+    """Every sample of a dataset (or one split) as tensors, with its geometry: the loading
+    recipe of docs/dataset.md, for a model of your own (no augmentation, no checks for
+    training).
+
+    Parameters
+    ----------
+    path : path-like
+        Dataset folder.
+    split : str, optional
+        Only this split.
+
+    Each item is a dict that ``torch.utils.data.default_collate`` stacks:
+
+    - ``rgb`` (3, H, W) float32 0..1; ``sparse``, ``gt`` (1, H, W) float32 metres (``gt``
+      zeros for a sample without ground truth) and ``has_gt`` (bool);
+    - ``K`` (3, 3) float32 pixels, NaN where the dataset has no intrinsics;
+    - ``T_cam_lidar``, ``T_ego_cam``, ``T_world_ego``, ``T_world_cam`` (4, 4) float64
+      metres and ``baseline_m`` (float64), NaN where not stored (datasets built without
+      ``--store-geometry``, schema 2), so that samples with and without them batch together;
+    - ``index`` (int), ``id`` and ``camera`` (str; ``""`` in a one-camera dataset).
+
+    The reader it holds pickles without its open files, so ``DataLoader(num_workers=N)``
+    works and gives the same tensors as ``num_workers=0``.
+    """
+
+    def __init__(self, path, split: str | None = None):
+        from ..io.dataset_reader import DatasetReader
+
+        self.reader = DatasetReader(path, split=split)
+
+    def __len__(self) -> int:
+        return len(self.reader)
+
+    def __getitem__(self, index: int) -> dict:
+        s = self.reader.sample(int(index))
+        sparse = s["sparse"]
+        gt = s["gt"]
+        K = s["intrinsics"]
+        item = {
+            "rgb": torch.from_numpy(np.ascontiguousarray(s["rgb"].transpose(2, 0, 1))).float()
+            / 255.0,
+            "sparse": torch.from_numpy(sparse)[None],
+            "gt": torch.from_numpy(gt if gt is not None else np.zeros_like(sparse))[None],
+            "has_gt": gt is not None,
+            "K": torch.full((3, 3), float("nan")) if K is None else torch.from_numpy(K).float(),
+        }
+        for name in TRANSFORMS:
+            T = s[name]
+            item[name] = (
+                torch.full((4, 4), float("nan"), dtype=torch.float64)
+                if T is None
+                else torch.from_numpy(T)
+            )
+        b = s["baseline_m"]
+        item["baseline_m"] = torch.tensor(float("nan") if b is None else b, dtype=torch.float64)
+        item.update(index=int(index), id=s["id"], camera=s["camera"] or "")
         return item
 
 

@@ -19,7 +19,7 @@ from ...calibration import Calibration
 from ...errors import FormatError, UsageError
 from .frame import Frame, FrameKey, Sweep
 
-__all__ = ["nuscenes_frames"]
+__all__ = ["nuscenes_camera_poses", "nuscenes_frames"]
 
 log = logging.getLogger(__name__)
 
@@ -135,3 +135,23 @@ def nuscenes_frames(
     if missing:
         log.warning("%d sample(s) lack %s or %s and were left out", missing, sensor, camera)
     return frames
+
+
+def nuscenes_camera_poses(
+    root: str | os.PathLike, *, version: str = "v1.0-mini", camera: str = "CAM_FRONT"
+) -> dict[str, tuple[tuple[float, ...], tuple[float, ...]]]:
+    """Per sample (``<scene>/<sample token>``): the camera's ``T_ego_cam`` (camera -> ego, its
+    calibrated_sensor) and ``T_world_ego`` (ego -> global, the ego pose at the camera's
+    timestamp), each row-major 4x4 flattened, metres. Samples without the camera are absent."""
+    from ..nuscenes import NuScenesTables
+
+    tables = NuScenesTables(root, version)
+    out = {}
+    for sample in tables.samples():
+        try:
+            cam = tables.sample_data(sample["token"], camera)
+        except FormatError:
+            continue
+        key = str(FrameKey(tables.scene_name(sample), sample["token"]))
+        out[key] = (_flat(tables.T_ego_from_sensor(cam)), _flat(tables.T_global_from_ego(cam)))
+    return out

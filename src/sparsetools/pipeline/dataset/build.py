@@ -384,8 +384,8 @@ class DatasetJob(BatchJob[DatasetFrameInput]):
         _check_dataset_folder(out_dir)
         fmt = self.settings.sparse_format
         tasks = [
-            FrameTask(x.id, x, {role: out_dir / rel for role, rel in sample_files(x, fmt).items()},
-                      x.sources)
+            FrameTask(x.id, x, {role: out_dir / rel for role, rel in sample_files(
+                x, fmt, store_points=self.settings.store_points).items()}, x.sources)
             for x in frames
         ]  # fmt: skip
         _check_inputs_outside(out_dir, tasks)
@@ -402,7 +402,7 @@ class DatasetJob(BatchJob[DatasetFrameInput]):
             merged = set(read_manifest(manifest)[0].column("id").to_pylist())
 
         def complete(task: FrameTask) -> bool:
-            files = [p for role, p in task.outputs.items() if role != "staged"]
+            files = [p for role, p in task.outputs.items() if role not in ("staged", "points")]
             return all(p.is_file() for p in files) and (
                 task.outputs["staged"].is_file() or task.inputs.id in merged
             )
@@ -475,6 +475,9 @@ def build_dataset(
     frames_per_part: int = 1000,
     param_options: Mapping[str, str] | None = None,
     sample_params: Mapping[str, tuple[tuple[str, object], ...]] | None = None,
+    geometry: bool = False,
+    store_points: bool = False,
+    frame_fields: Mapping[str, Mapping[str, object]] | None = None,
 ) -> RunSummary:
     """Build (or extend) a dataset folder from per-frame input files.
 
@@ -541,6 +544,14 @@ def build_dataset(
     sample_params : mapping of sample id -> tuple of (name, value), optional
         What varies per sample (a route's ``gt_method``), stored in that row's
         ``generation_params["sample"]``.
+    geometry : bool
+        Store each sample's ``K``, ``T_cam_lidar`` (and ``baseline_m`` for a KITTI raw stereo
+        pair) from its calibration in the manifest (``--store-geometry``).
+    store_points : bool
+        Store the points too (``--store-points``; routes only: the frames need their
+        ``cloud``, given by ``frame_fields``).
+    frame_fields : mapping of field -> (mapping of sample id -> value), optional
+        Per-frame fields of :class:`~.staging.DatasetFrameInput` a route knows (``cloud``).
 
     Returns
     -------
@@ -556,12 +567,17 @@ def build_dataset(
         split, split_files, official_split=official_split, sparse_format=sparse_format,
         sparse_name=sparse_name,
         gt_name=gt_name, link=link, source=source, params=params, sequence_from=sequence_from,
-        seed=seed,
+        seed=seed, geometry=geometry, store_points=store_points,
     )  # fmt: skip
     found = find_build_inputs(
         settings, rgb=rgb, sparse=sparse, gt=gt, confidence=confidence, calib=calib,
         camera=camera,
     )  # fmt: skip
+    if frame_fields:
+        found = dataclasses.replace(found, frames=[
+            dataclasses.replace(x, **{k: v.get(x.id) for k, v in frame_fields.items()})
+            for x in found.frames
+        ])  # fmt: skip
     if sample_params:
         found = dataclasses.replace(found, frames=[
             dataclasses.replace(x, sample_params=tuple(sample_params.get(x.id, ())))
@@ -577,7 +593,7 @@ def _check_dataset_folder(out: Path) -> None:
     """Refuse a folder that holds other things than a dataset (new, partial or complete)."""
     if (out / MANIFEST_NAME).is_file() or (out / STAGING).is_dir():
         return
-    allowed = ("rgb", SPARSE_DIR, "gt", "confidence", RECORD_DIR, SOURCES_DIR)
+    allowed = ("rgb", SPARSE_DIR, "gt", "confidence", RECORD_DIR, SOURCES_DIR, "points")
     if out.exists() and any(p for p in out.iterdir() if p.name not in allowed):
         raise OutputError(
             f"{out} exists and is not a sparsetools dataset (no {MANIFEST_NAME}); "

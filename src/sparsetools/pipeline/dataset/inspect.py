@@ -23,12 +23,11 @@ from ...io.dataset import (
     bytes_sha256,
     decode_confidence_bytes,
     decode_depth_bytes,
-    part_rows,
     points_sha256,
     read_manifest,
-    read_sparse_part,
     resolve_in_dataset,
 )
+from ...io.dataset_parts import part_rows, read_sparse_part
 from ...validate import check_int_range
 from .build import SOURCES_DIR
 from .staging import STAGING

@@ -21,22 +21,30 @@ from ...io.atomic import TMP_PREFIX
 from ...io.containment import ContainedPaths, remove_output
 from ...io.dataset import (
     MANIFEST_NAME,
+    POINTS_DIR,
     SPARSE_DIR,
     ManifestRow,
     read_manifest,
-    read_sparse_part,
     resolve_in_dataset,
     write_manifest,
+)
+from ...io.dataset_parts import (
+    points_part_table,
+    read_points_part,
+    read_sparse_part,
+    write_points_part,
     write_sparse_part,
 )
 from ...io.points_table import sparse_part_table
 from .splits import assign_splits
-from .staging import STAGING, read_staged
+from .staging import POINTS_SUFFIX, STAGING, read_staged
 
 __all__ = ["merge_staged"]
 
 log = logging.getLogger(__name__)
 
+#: Samples per points part at most (about 0.5 MB each for a KITTI scan's image points).
+POINTS_PER_PART = 100
 _PART_RE = re.compile(r"^part-(\d{5,})\.parquet$")
 
 
@@ -48,15 +56,16 @@ def _part_index(name: str) -> int | None:
 
 def _frame_indices(rows: list[ManifestRow]) -> dict[str, int]:
     """``frame_index`` by sample id: each frame's rank in its sequence, frames in natural order
-    (numbers compared as numbers: ``2`` before ``10``)."""
-    by_seq: dict[str, list[ManifestRow]] = defaultdict(list)
+    (numbers compared as numbers: ``2`` before ``10``); the cameras of one frame share it."""
+    by_seq: dict[str, set[str]] = defaultdict(set)
     for r in rows:
-        by_seq[r.sequence].append(r)
-    index = {}
-    for seq_rows in by_seq.values():
-        for i, r in enumerate(sorted(seq_rows, key=lambda r: _natural(r.frame))):
-            index[r.id] = i
-    return index
+        by_seq[r.sequence].add(r.frame)
+    rank = {
+        (seq, frame): i
+        for seq, frames in by_seq.items()
+        for i, frame in enumerate(sorted(frames, key=_natural))
+    }
+    return {r.id: rank[r.sequence, r.frame] for r in rows}
 
 
 def _natural(text: str) -> tuple:
@@ -175,6 +184,9 @@ def merge_staged(
             sparse_part_table(ids, [points_of[i] for i in ids], [size_of[i] for i in ids]), ids
         )
 
+    drop_stale_points = _merge_points(
+        out, contained, old_rows, kept, new_rows, gone, changes, frames_per_part
+    )
     rows = sorted(kept + new_rows, key=lambda r: r.id)
     for fid, i in _frame_indices(rows).items():
         changes[fid]["frame_index"] = i
@@ -187,10 +199,75 @@ def merge_staged(
     for p in sorted(sparse_dir.glob("part-*.parquet")) if sparse_dir.is_dir() else []:
         if f"{SPARSE_DIR}/{p.name}" not in referenced:
             remove_output(out, p)
+    drop_stale_points(rows)
     shutil.rmtree(staging, ignore_errors=True)  # a real folder (checked): links in it not followed
     result = _counts(rows)
     result["new_parts"] = len(written)
     return result
+
+
+def _merge_points(out, contained, old_rows, kept, new_rows, gone, changes, frames_per_part):
+    """The points parts (``--store-points``), as the sparse parts above: parts of an
+    interrupted finalize dropped, old parts that lose rows rewritten with the rows kept, the
+    staged points of the new frames written in new parts (``points_parquet`` /
+    ``points_row`` in ``changes``). Returns the clean-up to run after the manifest: delete
+    the parts no row refers to."""
+    import numpy as np
+    import pyarrow as pa
+
+    folder = out / POINTS_DIR
+    contained.check(folder, what="folder")
+    staged = {r.id: out / STAGING / f"{r.id}{POINTS_SUFFIX}" for r in new_rows}
+    staged = {fid: p for fid, p in staged.items() if p.is_file()}
+    referenced_old = {r.points_parquet for r in old_rows if r.points_parquet is not None}
+    if not staged and not referenced_old and not folder.is_dir():
+        return lambda rows: None
+    on_disk = sorted(folder.glob("part-*.parquet")) if folder.is_dir() else []
+    for p in on_disk:
+        if f"{POINTS_DIR}/{p.name}" not in referenced_old:
+            remove_output(out, p)
+    on_disk = [p for p in on_disk if p.exists()]
+    next_part = 1 + max((i for p in on_disk if (i := _part_index(p.name)) is not None), default=-1)
+
+    def new_part(table, ids) -> None:
+        nonlocal next_part
+        rel = f"{POINTS_DIR}/part-{next_part:05d}.parquet"
+        next_part += 1
+        write_points_part(contained.check(out / rel), table)
+        for i, fid in enumerate(ids):
+            changes[fid].update(points_parquet=rel, points_row=i)
+
+    kept_by_part = defaultdict(list)
+    for r in kept:
+        if r.points_parquet is not None:
+            kept_by_part[r.points_parquet].append(r)
+    removed = {r.points_parquet for r in old_rows if r.id in gone and r.points_parquet}
+    for rel in sorted(removed & set(kept_by_part)):
+        rows = sorted(kept_by_part[rel], key=lambda r: r.id)
+        table = read_points_part(resolve_in_dataset(out, rel))
+        sub = table.take(pa.array([r.points_row for r in rows], type=pa.int64()))
+        if sub.column("id").to_pylist() != [r.id for r in rows]:
+            raise FormatError(f"{rel}: rows do not match the manifest; run 'dataset verify'")
+        new_part(sub, [r.id for r in rows])
+    size_of = {r.id: (r.height, r.width) for r in new_rows}
+    ids = sorted(staged)
+    per_part = min(frames_per_part, POINTS_PER_PART)
+    for start in range(0, len(ids), per_part):
+        chunk = ids[start : start + per_part]
+        clouds = []
+        for fid in chunk:
+            arr = np.load(staged[fid], allow_pickle=False)
+            ring = arr[:, 3].astype(np.int16)
+            clouds.append((arr[:, :3], None if (ring < 0).all() and len(ring) else ring))
+        new_part(points_part_table(chunk, clouds, [size_of[i] for i in chunk]), chunk)
+
+    def clean(rows) -> None:
+        referenced = {r.points_parquet for r in rows if r.points_parquet is not None}
+        for p in sorted(folder.glob("part-*.parquet")) if folder.is_dir() else []:
+            if f"{POINTS_DIR}/{p.name}" not in referenced:
+                remove_output(out, p)
+
+    return clean
 
 
 def _changed(row: ManifestRow, changes: Mapping | None) -> ManifestRow:

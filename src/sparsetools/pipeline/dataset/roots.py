@@ -12,13 +12,14 @@ from __future__ import annotations
 
 import logging
 import os
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from ...errors import FormatError, ParameterError, UsageError
 from ..batch import Batch, RunSummary
 from ..core import run_job
 from .build import SOURCES_DIR, BuildSettings, DatasetJob, build_dataset, find_build_inputs
+from .cameras import CameraInputs, camera_id, find_rig_inputs
 from .official_splits import check_scene_list
 from .splits import split_list_of
 
@@ -38,12 +39,16 @@ NUSCENES_OPTIONS = {
     "route": "dataset", "version": "--nuscenes-version", "camera": "--camera",
     "sensor": "--sensor", "sweeps": "--sweeps", "resize": "--resize", "crop": "--crop",
     "gt": "--gt-sensor", "jbf": "--jbf", "gt_filter_occluded": "--filter-occluded",
+    "cameras": "--cameras",
 }  # fmt: skip
 KITTI_RAW_OPTIONS = {
     "route": "dataset", "beams": "--beams", "gt": "--gt-method", "gt_neighbours": "--gt-neighbours",
     "stereo_check": "--stereo-check/--no-stereo-check", "icp_min_range": "--icp-min-range",
-    "gt_filter_occluded": "--filter-occluded", "resize_to": "--resize-to",
+    "gt_filter_occluded": "--filter-occluded", "resize_to": "--resize-to", "cameras": "--cameras",
 }  # fmt: skip
+#: nuScenes camera channels, in the devkit's order (``--cameras all``).
+NUSCENES_CAMERAS = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_BACK",
+                    "CAM_BACK_LEFT", "CAM_BACK_RIGHT")  # fmt: skip
 KITTI_DC_OPTIONS = {"route": "dataset", "sparse": "--sparse-name", "selection": "--selection"}
 
 
@@ -72,6 +77,9 @@ def build_nuscenes_dataset(
     official_split: str | None = None,
     seed: int = 0,
     sparse_format: str = "both",
+    cameras: tuple[str, ...] | None = None,
+    geometry: bool = False,
+    store_points: bool = False,
     batch: Batch | None = None,
 ) -> RunSummary:
     """nuScenes samples -> dataset: one camera's image (resized / cropped, with its adjusted
@@ -91,16 +99,19 @@ def build_nuscenes_dataset(
     the camera cannot see (:func:`sparsetools.ops.occlusion.filter_occluded` on the merged
     sweeps' map).
 
+    ``cameras``: several channels (``--cameras all`` or ``CAM_FRONT,CAM_BACK,...``), one
+    sample per key frame and camera, ids ``<scene>/<channel>/<sample token>`` (:mod:`.cameras`);
+    None or one: ``camera``, ids ``<scene>/<sample token>`` as before. ``geometry``: the
+    geometry columns (``K``, ``T_cam_lidar``: the sensor's points to the camera at its time,
+    ``T_ego_cam``, ``T_world_ego`` at the camera's time); ``store_points``: the sensor's
+    points too, sweeps merged as the sparse input merges them (``points/part-*.parquet``).
+
     Raises
     ------
     UsageError
         ``sensor`` is also ``gt_sensor`` (the input would be the ground truth itself), or
         ``filter_occluded`` without ground truth.
     """
-    from ...io.sources import nuscenes_frames
-    from ..camera_images import CameraImageJob, CameraImageSettings
-    from ..project import ProjectJob, ProjectSettings
-
     batch = batch or Batch()
     for item in split_files or ():  # scene lists: refused before any work
         check_scene_list(split_list_of(item))
@@ -116,6 +127,105 @@ def build_nuscenes_dataset(
         raise UsageError("--filter-occluded filters the ground truth: not with --gt-sensor none",
                          param="filter_occluded")  # fmt: skip
     out = Path(out_dir)
+    cams = tuple(cameras) if cameras else (camera,)
+    rig = len(cams) > 1
+    staged = {
+        cam: _nuscenes_stages(
+            root, out, camera=cam, suffix=f"_{cam}" if rig else "", version=version,
+            sensor=sensor, sweeps=sweeps, resize=resize, crop=crop, gt_sensor=gt_sensor,
+            gt_sweeps=gt_sweeps, filter_occluded=filter_occluded, jbf=jbf, scenes=scenes,
+            night=night, batch=batch,
+        )
+        for cam in cams
+    }  # fmt: skip
+    source = f"{sensor.lower()}-jbf" if jbf else sensor.lower()
+    settings = BuildSettings.with_splits(
+        split, split_files, official_split=official_split, sparse_format=sparse_format,
+        source=source, seed=seed, geometry=geometry, store_points=store_points,
+        params={
+            "route": "nuscenes", "version": version, "camera": camera, "sensor": sensor,
+            "sweeps": sweeps, "resize": resize, "crop": list(crop) if crop else None,
+            "gt": gt_sensor, "jbf": jbf,
+            # recorded only when set, so datasets of earlier versions resume
+            **({"gt_filter_occluded": True} if filter_occluded else {}),
+            **({"cameras": list(cams)} if rig else {}),
+        },
+    )  # fmt: skip
+    poses = {}
+    if settings.geometry:
+        from ...io.sources.nuscenes import nuscenes_camera_poses
+
+        poses = {cam: nuscenes_camera_poses(root, version=version, camera=cam) for cam in cams}
+
+    def extra(cam) -> tuple:
+        out = ()
+        if poses:
+            p = poses[cam]
+            out += (("T_ego_cam", {k: v[0] for k, v in p.items()}),
+                    ("T_world_ego", {k: v[1] for k, v in p.items()}))  # fmt: skip
+        if store_points:
+            out += (("cloud", staged[cam].clouds), ("sweeps", staged[cam].sweeps))
+        return out
+
+    inputs = [
+        CameraInputs(cam, rgb=st.images, sparse=st.sparse, gt=st.gt, confidence=st.confidence,
+                     calib=st.images / "calib", extra=extra(cam))
+        for cam, st in staged.items()
+    ]  # fmt: skip
+    if rig:
+        found = find_rig_inputs(settings, inputs)
+        sample_params = {camera_id(k, cam): v for cam, st in staged.items()
+                         for k, v in st.sample_params.items()}  # fmt: skip
+    else:
+        c = inputs[0]
+        found = find_build_inputs(settings, rgb=c.rgb, sparse=c.sparse, gt=c.gt,
+                                  confidence=c.confidence, calib=c.calib)  # fmt: skip
+        fields = dict(c.extra)
+        found = replace(found, frames=[
+            replace(x, **{name: v[x.id] for name, v in fields.items() if x.id in v})
+            for x in found.frames
+        ])  # fmt: skip
+        sample_params = staged[cams[0]].sample_params
+    found = replace(found, frames=[
+        replace(x, sample_params=sample_params.get(x.id, ())) for x in found.frames
+    ])  # fmt: skip
+    job = DatasetJob.for_inputs(settings, found, param_options=NUSCENES_OPTIONS)
+    summary = run_job(job, found.frames, out, batch=batch, inputs=found.roots, desc="dataset")
+    merged = [n for st in staged.values() for n in st.merged.values()]
+    gt_totals = staged[cams[0]].gt_totals
+    if rig and gt_totals:
+        gt_totals = {"gt": {"methods": _count(dict(v)["gt_method"]
+                                              for v in sample_params.values())}}  # fmt: skip
+        if filter_occluded:
+            gt_totals["gt"]["occluded_pixels"] = sum(
+                st.gt_totals["gt"].get("occluded_pixels", 0) for st in staged.values()
+            )
+    return summary.with_totals({"sweeps": sweeps_summary(sweeps, merged), **gt_totals})
+
+
+@dataclass(frozen=True)
+class _NuscenesStages:
+    """One camera's stages of ``dataset nuscenes``: its folders, per-sample parameters (by
+    ``scene/token``), sweeps merged per sample, the ground truth's totals."""
+
+    images: Path
+    sparse: Path
+    gt: Path | None
+    confidence: Path | None
+    sample_params: dict
+    merged: dict
+    gt_totals: dict
+    clouds: dict
+    sweeps: dict
+
+
+def _nuscenes_stages(root, out: Path, *, camera, suffix, version, sensor, sweeps, resize, crop,
+                     gt_sensor, gt_sweeps, filter_occluded, jbf, scenes, night,
+                     batch) -> _NuscenesStages:  # fmt: skip
+    from ...io.sources import nuscenes_frames
+    from ..camera_images import CameraImageJob, CameraImageSettings
+    from ..project import ProjectJob, ProjectSettings
+
     common = {"version": version, "camera": camera, "scenes": scenes, "night": night}
     frames = nuscenes_frames(root, sensor=sensor, sweeps=sweeps, **common)
     gt_merged = {}
@@ -138,48 +248,33 @@ def build_nuscenes_dataset(
         )
         for k, n in merged.items()
     }  # fmt: skip
+    images_dir = _stage(out, "images" + suffix)
     images = CameraImageJob(CameraImageSettings(resize=resize, crop=crop))
-    run_job(images, frames, _stage(out, "images"), batch=batch, desc="images")
+    run_job(images, frames, images_dir, batch=batch, desc="images")
     project = ProjectJob(ProjectSettings(resize=resize, crop=crop, camera=camera))
-    run_job(project, frames, _stage(out, "sparse"), batch=batch, inputs=[root])
+    run_job(project, frames, _stage(out, "sparse" + suffix), batch=batch, inputs=[root])
     gt, gt_totals = None, {}
     if gt_sensor is not None:
-        gt = _stage(out, "gt_occluded" if filter_occluded else "gt")
+        gt = _stage(out, ("gt_occluded" if filter_occluded else "gt") + suffix)
         gt_job = ProjectJob(replace(project.settings, filter_occluded=filter_occluded))
         done = run_job(gt_job, gt_frames, gt, batch=batch, inputs=[root], desc="gt")
         gt_totals = {"gt": {"methods": _count(dict(sample_params[k])["gt_method"]
                                               for k in gt_merged)}}  # fmt: skip
         if filter_occluded:
             gt_totals["gt"]["occluded_pixels"] = done.totals.get("occluded_pixels", 0)
-    sparse, confidence, source = _stage(out, "sparse"), None, sensor.lower()
+    sparse, confidence = _stage(out, "sparse" + suffix), None
     if jbf:
         from ...io.sources import radar_frames
         from ..jbf_expand import JbfJob
 
-        radar = radar_frames([_stage(out, "sparse")], image=_stage(out, "images"),
-                             calib=_stage(out, "images") / "calib")  # fmt: skip
-        run_job(JbfJob(), radar, _stage(out, "jbf"), batch=batch)
-        sparse = confidence = _stage(out, "jbf")
-        source = f"{sensor.lower()}-jbf"
-    settings = BuildSettings.with_splits(
-        split, split_files, official_split=official_split, sparse_format=sparse_format,
-        source=source, seed=seed,
-        params={
-            "route": "nuscenes", "version": version, "camera": camera, "sensor": sensor,
-            "sweeps": sweeps, "resize": resize, "crop": list(crop) if crop else None,
-            "gt": gt_sensor, "jbf": jbf,
-            # recorded only when set, so datasets of earlier versions resume
-            **({"gt_filter_occluded": True} if filter_occluded else {}),
-        },
-    )  # fmt: skip
-    found = find_build_inputs(settings, rgb=_stage(out, "images"), sparse=sparse, gt=gt,
-                              confidence=confidence, calib=_stage(out, "images") / "calib")  # fmt: skip
-    found = replace(found, frames=[
-        replace(x, sample_params=sample_params.get(x.id, ())) for x in found.frames
-    ])  # fmt: skip
-    job = DatasetJob.for_inputs(settings, found, param_options=NUSCENES_OPTIONS)
-    summary = run_job(job, found.frames, out, batch=batch, inputs=found.roots, desc="dataset")
-    return summary.with_totals({"sweeps": sweeps_summary(sweeps, merged.values()), **gt_totals})
+        radar = radar_frames([_stage(out, "sparse" + suffix)], image=images_dir,
+                             calib=images_dir / "calib")  # fmt: skip
+        run_job(JbfJob(), radar, _stage(out, "jbf" + suffix), batch=batch)
+        sparse = confidence = _stage(out, "jbf" + suffix)
+    clouds = {str(f.key): str(f.cloud) for f in frames}
+    sweeps_of = {str(f.key): tuple(f.sweeps) for f in frames}
+    return _NuscenesStages(images_dir, sparse, gt, confidence, sample_params, merged, gt_totals,
+                           clouds, sweeps_of)  # fmt: skip
 
 
 def sweeps_summary(requested: int, merged) -> dict:
@@ -220,6 +315,9 @@ def build_kitti_raw_dataset(
     official_split: str | None = None,
     seed: int = 0,
     sparse_format: str = "both",
+    cameras: tuple[int, ...] | None = None,
+    geometry: bool = False,
+    store_points: bool = False,
     batch: Batch | None = None,
 ) -> RunSummary:
     """KITTI raw drives (a drive, a date folder or a root of dates) -> dataset: the camera
@@ -247,6 +345,11 @@ def build_kitti_raw_dataset(
     size with the scaled calibration (no depth map is resized; ``gt="accumulated"`` merges
     its scans at that size and its stereo check matches the pair resized to it, fx scaled).
     monodepth2's KITTI setting is ``(640, 192)``. Without it the images are copied from the tree at their own size.
+    ``cameras``: several KITTI cameras (``(2, 3)``: ``--cameras image_02,image_03``), one
+    sample per frame and camera, ids ``<drive>/image_0N/<frame>``
+    (:mod:`.cameras`); None or one camera: ``camera``, ids ``<drive>/<frame>`` as before.
+    ``geometry``: the geometry columns (``K``, ``T_cam_lidar``, ``baseline_m``);
+    ``store_points``: the points too (``points/part-*.parquet``).
 
     Raises
     ------
@@ -256,11 +359,11 @@ def build_kitti_raw_dataset(
     FormatError
         ``stereo_check=True`` and a frame without image_03.
     """
-    from ...io.sources import Frame, cloud_frames, is_kitti_raw, kitti_raw_index
-    from ..beams import BeamsJob, BeamsSettings
-    from ..project import ProjectJob, ProjectSettings
+    from ...io.sources import is_kitti_raw
 
-    _check_kitti_raw_gt(gt, gt_neighbours, stereo_check, icp_min_range, camera)
+    cams = tuple(cameras) if cameras else (camera,)
+    for c in cams:
+        _check_kitti_raw_gt(gt, gt_neighbours, stereo_check, icp_min_range, c)
     if resize_to is not None:
         from ...validate import parse_size
 
@@ -272,42 +375,27 @@ def build_kitti_raw_dataset(
             f"{root}: not a KITTI raw drive, date folder or root (no <drive>/velodyne_points/"
             "data/ or image_0N/data/ with the calibration pair)"
         )
-    frames = cloud_frames([root], camera=camera)
-    project = ProjectJob(ProjectSettings(camera=camera, resize_to=resize_to))
     plain_gt = gt == "scan" and not filter_occluded
-    if plain_gt or beams is None:  # the scan's projection: the truth, or the 64-beam input
-        run_job(project, frames, _stage(out, "gt"), batch=batch, inputs=[root])
-    gt_dir, gt_totals = _stage(out, "gt"), {}
-    methods, windows = dict.fromkeys((str(f.key) for f in frames), "scan"), {}
-    if gt == "scan" and filter_occluded:
-        gt_dir = _stage(out, "gt_occluded")
-        occluded = ProjectJob(replace(project.settings, filter_occluded=True))
-        s = run_job(occluded, frames, gt_dir, batch=batch, inputs=[root], desc="gt")
-        methods = dict.fromkeys(methods, "scan+occlusion")
-        gt_totals = {"occluded_pixels": s.totals.get("occluded_pixels", 0)}
-    elif gt == "accumulated":
-        gt_dir, methods, windows, gt_totals = _accumulated_gt(
-            root, out, neighbours=gt_neighbours, stereo=stereo_check,
-            icp_min_range=icp_min_range, camera=camera, resize_to=resize_to, batch=batch,
-        )  # fmt: skip
-    sparse = _stage(out, "gt")
-    if beams is not None:
-        run_job(BeamsJob(BeamsSettings(n=(beams,))), frames, _stage(out, f"beams{beams}"),
-                batch=batch, inputs=[root])  # fmt: skip
-        raw = kitti_raw_index(root, what="cloud", camera=camera)
-        beam_frames = [
-            Frame(key=f.key, cloud=f.key.path(_stage(out, f"beams{beams}"), ".bin"),
-                  calib=raw.calib[f.key], image=f.image)
-            for f in frames
-        ]  # fmt: skip
-        sparse = _stage(out, f"sparse{beams}")
-        run_job(project, beam_frames, sparse, batch=batch)
-    # After the projections, whose records refuse another --resize-to before anything is
-    # written here: the images at the maps' size, with their calibrations.
-    rgb, calib = root, None
-    if resize_to is not None:
-        rgb, calib = _resized_images(frames, out, resize_to, camera=camera, root=root,
-                                     batch=batch)  # fmt: skip
+    rig = len(cams) > 1
+    if rig and resize_to is not None:
+        raise UsageError(
+            "--resize-to with several --cameras is not supported: build one dataset per camera",
+            param="--resize-to",
+        )
+    if rig:  # every camera's images found before any stage runs
+        from ...io.sources import index_input
+
+        for c in cams:
+            index_input(root, "image", option="--cameras", camera=c)
+    staged = {
+        c: _kitti_raw_stages(
+            root, out, camera=c, suffix=f"_image_0{c}" if rig else "", beams=beams, gt=gt,
+            filter_occluded=filter_occluded, gt_neighbours=gt_neighbours,
+            stereo_check=stereo_check, icp_min_range=icp_min_range, resize_to=resize_to,
+            batch=batch,
+        )
+        for c in cams
+    }  # fmt: skip
     params = {"route": "kitti-raw", "beams": beams}
     # Recorded only when not the default, so datasets of earlier versions resume.
     if gt != "scan":
@@ -319,32 +407,57 @@ def build_kitti_raw_dataset(
         params["gt_filter_occluded"] = True
     if resize_to is not None:
         params["resize_to"] = list(resize_to)
+    if rig:
+        params["cameras"] = [f"image_0{c}" for c in cams]
+    source = "lidar" if beams is None else f"lidar-{beams}beam"
     # The default (one scan) writes the rows 0.2 wrote, byte for byte: no gt_method, which
     # ``dataset info`` reads as ``scan`` for this route.
     per_sample = None
     if not plain_gt:
-        per_sample = {
-            k: (("gt_method", m),) + ((("gt_window", windows[k]),) if k in windows else ())
-            for k, m in methods.items()
-        }
-    summary = build_dataset(
-        out,
-        rgb=rgb,
-        sparse=sparse,
-        gt=gt_dir,
-        calib=calib,
-        split=split,
-        split_files=split_files,
-        official_split=official_split,
-        seed=seed,
-        sparse_format=sparse_format,
-        source="lidar" if beams is None else f"lidar-{beams}beam",
-        camera=camera,
-        params=params,
-        param_options=KITTI_RAW_OPTIONS,
-        sample_params=per_sample,
-        batch=batch,
-    )
+        per_sample = {}
+        for c, (_, _, methods, windows, _, _) in staged.items():
+            for k, m in methods.items():
+                sid = camera_id(k, f"image_0{c}") if rig else k
+                per_sample[sid] = (("gt_method", m),) + (
+                    (("gt_window", windows[k]),) if k in windows else ()
+                )
+    sparse, gt_dir, methods, _, gt_totals, clouds = staged[cams[0]]
+    if not rig:
+        # After the projections, whose records refuse another --resize-to before anything is
+        # written here: the images at the maps' size, with their calibrations.
+        rgb, calib = root, None
+        if resize_to is not None:
+            from ...io.sources import cloud_frames
+
+            rgb, calib = _resized_images(cloud_frames([root], camera=cams[0]), out, resize_to,
+                                         camera=cams[0], root=root, batch=batch)  # fmt: skip
+        summary = build_dataset(
+            out, rgb=rgb, calib=calib, sparse=sparse, gt=gt_dir, split=split,
+            split_files=split_files,
+            official_split=official_split, seed=seed, sparse_format=sparse_format,
+            source=source, camera=cams[0], params=params, param_options=KITTI_RAW_OPTIONS,
+            sample_params=per_sample, geometry=geometry, store_points=store_points,
+            frame_fields={"cloud": clouds} if store_points else None, batch=batch,
+        )  # fmt: skip
+    else:
+        settings = BuildSettings.with_splits(
+            split, split_files, official_split=official_split, sparse_format=sparse_format,
+            source=source, seed=seed, params=params, geometry=geometry,
+            store_points=store_points,
+        )  # fmt: skip
+        found = find_rig_inputs(settings, [
+            CameraInputs(f"image_0{c}", rgb=root, sparse=staged[c][0], gt=staged[c][1], index=c,
+                         extra=(("cloud", staged[c][5]),) if store_points else ())
+            for c in cams
+        ])  # fmt: skip
+        if per_sample:
+            found = replace(found, frames=[
+                replace(x, sample_params=per_sample.get(x.id, ())) for x in found.frames])  # fmt: skip
+        job = DatasetJob.for_inputs(settings, found, param_options=KITTI_RAW_OPTIONS)
+        summary = run_job(job, found.frames, out, batch=batch, inputs=found.roots,
+                          desc="dataset")  # fmt: skip
+        methods = {camera_id(k, f"image_0{c}"): m for c, st in staged.items()
+                   for k, m in st[2].items()}  # fmt: skip
     method = "scan+occlusion" if gt == "scan" and filter_occluded else gt
     return summary.with_totals(
         {"gt": {"method": method, "methods": _count(methods.values()), **gt_totals}}
@@ -367,6 +480,64 @@ def _resized_images(frames, out: Path, size, *, camera, root, batch) -> tuple[Pa
         job = CameraImageJob(CameraImageSettings(resize_to=size))
         run_job(job, with_image, images, batch=batch, inputs=[root], desc="images")
     return images, images / "calib"
+
+
+def _kitti_raw_stages(
+    root,
+    out: Path,
+    *,
+    camera,
+    suffix,
+    beams,
+    gt,
+    filter_occluded,
+    gt_neighbours,
+    stereo_check,
+    icp_min_range,
+    resize_to,
+    batch,
+):
+    """One camera's stages of ``dataset kitti-raw`` (folders ``DATASET/.sources/<stage>
+    <suffix>``): the sparse input folder, the ground-truth folder, each frame's ``gt_method``
+    and window, the ground truth's totals, each frame's scan (by frame id)."""
+    from ...io.sources import Frame, cloud_frames, kitti_raw_index
+    from ..beams import BeamsJob, BeamsSettings
+    from ..project import ProjectJob, ProjectSettings
+
+    frames = cloud_frames([root], camera=camera)
+    project = ProjectJob(ProjectSettings(camera=camera, resize_to=resize_to))
+    plain_gt = gt == "scan" and not filter_occluded
+    if plain_gt or beams is None:  # the scan's projection: the truth, or the 64-beam input
+        run_job(project, frames, _stage(out, "gt" + suffix), batch=batch, inputs=[root])
+    gt_dir, gt_totals = _stage(out, "gt" + suffix), {}
+    methods, windows = dict.fromkeys((str(f.key) for f in frames), "scan"), {}
+    if gt == "scan" and filter_occluded:
+        gt_dir = _stage(out, "gt_occluded" + suffix)
+        occluded = ProjectJob(replace(project.settings, filter_occluded=True))
+        s = run_job(occluded, frames, gt_dir, batch=batch, inputs=[root], desc="gt")
+        methods = dict.fromkeys(methods, "scan+occlusion")
+        gt_totals = {"occluded_pixels": s.totals.get("occluded_pixels", 0)}
+    elif gt == "accumulated":
+        gt_dir, methods, windows, gt_totals = _accumulated_gt(
+            root, out, neighbours=gt_neighbours, stereo=stereo_check,
+            icp_min_range=icp_min_range, camera=camera, resize_to=resize_to, batch=batch,
+            suffix=suffix,
+        )  # fmt: skip
+    sparse = _stage(out, "gt" + suffix)
+    if beams is not None:
+        beams_dir = _stage(out, f"beams{beams}{suffix}")
+        run_job(BeamsJob(BeamsSettings(n=(beams,))), frames, beams_dir, batch=batch,
+                inputs=[root])  # fmt: skip
+        raw = kitti_raw_index(root, what="cloud", camera=camera)
+        beam_frames = [
+            Frame(key=f.key, cloud=f.key.path(beams_dir, ".bin"), calib=raw.calib[f.key],
+                  image=f.image)
+            for f in frames
+        ]  # fmt: skip
+        sparse = _stage(out, f"sparse{beams}{suffix}")
+        run_job(project, beam_frames, sparse, batch=batch)
+    clouds = {str(f.key): str(f.cloud) for f in frames}
+    return sparse, gt_dir, methods, windows, gt_totals, clouds
 
 
 #: The vocabulary of ``generation_params["sample"]["gt_method"]`` (docs/dataset.md).
@@ -410,7 +581,16 @@ def _check_kitti_raw_gt(gt, neighbours, stereo, icp_min_range, camera) -> None:
 
 
 def _accumulated_gt(
-    root, out: Path, *, neighbours, stereo, icp_min_range, camera, batch, resize_to=None
+    root,
+    out: Path,
+    *,
+    neighbours,
+    stereo,
+    icp_min_range,
+    camera,
+    batch,
+    resize_to=None,
+    suffix="",
 ):
     """The accumulate stage (and the stereo stage) of ``--gt-method accumulated``: the folder
     of the ground truth, each sample's ``gt_method`` and window (``t-A..t+B``, clipped at the
@@ -425,7 +605,7 @@ def _accumulated_gt(
         icp_settings=IcpSettings(min_range=icp_min_range), camera=camera, resize_to=resize_to,
     )  # fmt: skip
     job = replace(job, option_aliases=(("window", "--gt-neighbours"),))
-    acc_dir = _stage(out, "gt_accumulated")
+    acc_dir = _stage(out, "gt_accumulated" + suffix)
     acc = run_job(job, frames, acc_dir, batch=batch, inputs=[root], desc="accumulate")
     source = job.settings.pose_source
     poses = {"kitti-oxts": "oxts"}.get(source, source)
@@ -461,7 +641,7 @@ def _accumulated_gt(
     if not right:
         return acc_dir, methods, windows, totals
     stereo_frames = [replace(f, depth=f.key.path(acc_dir, ".png")) for f in frames]
-    checked_dir = _stage(out, "gt_stereo")
+    checked_dir = _stage(out, "gt_stereo" + suffix)
     check = StereoCheckJob(right=tuple(sorted(right.items())), resize_to=resize_to)
     s = run_job(check, stereo_frames, checked_dir, batch=batch, inputs=[root], desc="stereo")
     totals["stereo_removed"] = s.totals.get("removed", 0)

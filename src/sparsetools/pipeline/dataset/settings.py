@@ -44,6 +44,13 @@ class BuildSettings:
         A split shipped with sparsetools (``--split eigen``, see :mod:`.official_splits`):
         its lists give each frame's split. Recorded only when given, so that a dataset made
         before it existed resumes.
+    geometry : bool
+        Store each sample's geometry (``K``, ``T_cam_lidar``, ``baseline_m`` from its
+        calibration; the route's ``T_ego_cam`` / ``T_world_ego``) in the manifest's optional
+        columns (``--store-geometry``). Recorded only when on.
+    store_points : bool
+        Store each sample's sensor points in the camera frame in ``points/part-*.parquet``
+        (``--store-points``; implies ``geometry``). Recorded only when on.
     """
 
     sparse_format: str = "both"
@@ -59,6 +66,12 @@ class BuildSettings:
     split_files: tuple | None = field(default=None, metadata={"option": "--split-file"})
     seed: int = 0
     official_split: str | None = field(default=None, metadata={"option": "--split"})
+    store_points: bool = field(
+        default=False, metadata={"option": "--store-points", "omit_default": True}
+    )
+    geometry: bool = field(
+        default=False, metadata={"option": "--store-geometry", "omit_default": True}
+    )
 
     def __post_init__(self) -> None:
         check_choice(self.sparse_format, "sparse_format", SPARSE_FORMATS)
@@ -77,6 +90,8 @@ class BuildSettings:
         if self.split_files is not None:
             object.__setattr__(self, "split_files", tuple(self.split_files) or None)
         object.__setattr__(self, "link", bool(self.link))
+        object.__setattr__(self, "store_points", bool(self.store_points))
+        object.__setattr__(self, "geometry", bool(self.geometry) or self.store_points)
         object.__setattr__(self, "source", str(self.source))
         object.__setattr__(self, "seed", check_int_range(self.seed, "seed"))
 

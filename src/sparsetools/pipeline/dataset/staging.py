@@ -39,6 +39,7 @@ __all__ = [
     "STAGING",
     "DatasetFrameInput",
     "DatasetFrameStats",
+    "camera_points",
     "read_record",
     "read_staged",
     "sample_files",
@@ -47,6 +48,10 @@ __all__ = [
 ]
 
 STAGING = ".staging"
+#: A frame's staged points (``--store-points``): an .npy of (N, 4) float64, x y z ring.
+POINTS_SUFFIX = ".pts.npy"
+#: Points nearer than this (camera z, metres) are not stored: ``project``'s min_depth.
+POINTS_MIN_DEPTH = 0.1
 
 
 # -- per-frame job -----------------------------------------------------------------------------------
@@ -193,7 +198,7 @@ def _corrupt(path: Path, exc: BaseException) -> FormatError:
     return FormatError(f"{path}: corrupt staging record ({brief_error(exc)}); delete it and rerun")
 
 
-def _image_calibration(calib_path: str, image: str, w: int, h: int):
+def _image_calibration(calib_path: str, image: str, w: int, h: int, camera: int = 2):
     """The frame's calibration, checked against its ``w`` x ``h`` image as every command checks
     it (:func:`sparsetools.io.calib.frame_calibration`): a calibration that holds its image
     size must hold this one; one without a size must have its principal point near the
@@ -201,7 +206,7 @@ def _image_calibration(calib_path: str, image: str, w: int, h: int):
     from ...errors import CalibrationError
     from ...io.calib import check_principal_point, load_calibration
 
-    calib = load_calibration(calib_path)
+    calib = load_calibration(calib_path, camera=camera)
     if calib.width is not None and calib.height is not None:
         if (calib.width, calib.height) != (w, h):
             raise CalibrationError(
@@ -214,6 +219,109 @@ def _image_calibration(calib_path: str, image: str, w: int, h: int):
     calib = calib.with_size(w, h)
     check_principal_point(calib, given_by=f"image {image}")
     return calib
+
+
+def _flat(M: np.ndarray) -> tuple[float, ...]:
+    return tuple(float(v) for v in np.asarray(M, dtype=np.float64).reshape(-1))
+
+
+def camera_frame_transform(calib) -> tuple[np.ndarray, np.ndarray]:
+    """``K`` and ``T_cam_lidar`` of a calibration: ``K @ (T_cam_lidar @ x)[:3]`` is its
+    projection ``calib.projection @ x``.
+
+    A KITTI rectified ``P = [K | p]`` carries the camera's offset from the reference camera in
+    its last column; it goes into the transform, ``T_cam_lidar = [I | K^-1 p] @
+    T_cam_from_sensor`` (the frame of the rectified camera itself, monodepth2's), so that a
+    plain pinhole ``K`` projects the points.
+
+    Returns
+    -------
+    K : (3, 3) float64, pixels
+    T_cam_lidar : (4, 4) float64, metres
+    """
+    T = np.asarray(calib.T_cam_from_sensor, dtype=np.float64)
+    if calib.P is None:
+        return np.asarray(calib.K, dtype=np.float64), T
+    K = np.asarray(calib.P[:, :3], dtype=np.float64)
+    shift = np.eye(4)
+    shift[:3, 3] = np.linalg.solve(K, calib.P[:, 3])
+    return K, shift @ T
+
+
+def calibration_geometry(calib, calib_path: str, camera: int) -> dict:
+    """The geometry columns a calibration gives (``K``, ``T_cam_lidar``; ``baseline_m`` for
+    a KITTI raw date folder holding both colour cameras' ``P_rect``)."""
+    from ...errors import CalibrationError
+    from ...io.calib import read_kitti_stereo_rig
+
+    K, T = camera_frame_transform(calib)
+    out = {"K": _flat(K), "T_cam_lidar": _flat(T)}
+    folder = Path(calib_path)
+    if calib.P is not None and (folder / "calib_cam_to_cam.txt").is_file() and camera in (2, 3):
+        try:
+            out["baseline_m"] = float(read_kitti_stereo_rig(folder)[1])
+        except CalibrationError:  # no P_rect_03 (or not a pair): no stereo partner
+            pass
+    return out
+
+
+def camera_points(cloud_path: str, calib, *, sweeps=()) -> np.ndarray:
+    """A scan's points that land in the calibration's image, in the camera frame, with rings.
+
+    Parameters
+    ----------
+    cloud_path : str
+        The key sweep (KITTI ``.bin``, nuScenes ``.pcd.bin`` or radar ``.pcd``).
+    calib : Calibration
+        The stored image's calibration (sensor -> camera, sized).
+    sweeps : tuple of Sweep
+        Earlier sweeps merged as ``project`` merges them
+        (:func:`sparsetools.pipeline.project.load_frame_points`).
+
+    Returns
+    -------
+    (N, 4) float64
+        x, y, z in the frame of :func:`camera_frame_transform` (``T_cam_lidar @ x``, metres,
+        computed as :func:`sparsetools.ops.projection.transform_points`), then the ring:
+        KITTI ``.bin``: :func:`sparsetools.ops.rings.recover_rings`, 64 lasers, scan order
+        (elevation, with a warning, for a scan that is not in scan order); nuScenes
+        ``.pcd.bin``: its ring column (32 lasers); -1 where there is none (radar) or it
+        cannot be recovered (an empty scan). A point lands when ``z > 0.1`` m and ``K``
+        puts it inside the image (``project``'s rule).
+    """
+    from ...errors import ParameterError
+    from ...io.pointcloud import cloud_kind
+    from ...ops.projection import transform_points
+    from ...ops.rings import recover_rings
+    from ..project import load_frame_points
+
+    pts = load_frame_points(cloud_path, sweeps)
+    K, T = camera_frame_transform(calib)
+    xyz = transform_points(pts, T)
+    kind = cloud_kind(cloud_path)
+    ring = np.full(len(pts), -1.0)
+    try:
+        if kind == "kitti-bin":
+            ring = recover_rings(pts, n_lasers=64, method="scan-order").astype(np.float64)
+        elif kind == "nuscenes-bin":
+            ring = recover_rings(pts, n_lasers=32, method="column", column=4).astype(np.float64)
+    except ParameterError:
+        pass
+    w, h = calib.size
+    with np.errstate(all="ignore"):
+        z = xyz[:, 2]
+        u = np.rint((K[0, 0] * xyz[:, 0] + K[0, 1] * xyz[:, 1] + K[0, 2] * z) / z)
+        v = np.rint((K[1, 1] * xyz[:, 1] + K[1, 2] * z) / z)
+        keep = (z > POINTS_MIN_DEPTH) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    return np.column_stack([xyz[keep], ring[keep]])
+
+
+def _npy_bytes(arr: np.ndarray) -> bytes:
+    import io
+
+    buf = io.BytesIO()
+    np.save(buf, np.ascontiguousarray(arr), allow_pickle=False)
+    return buf.getvalue()
 
 
 @dataclass(frozen=True)
@@ -241,6 +349,18 @@ class DatasetFrameInput:
         What this frame's generation did that differs per frame (a nuScenes sample's radar
         sweeps actually merged), stored in ``generation_params`` under ``"sample"``; the
         run's own ``params`` are the same for every frame.
+    camera : str, optional
+        The rig's camera (``image_03``, ``CAM_BACK``) in a dataset of several cameras.
+    calib_camera : int
+        KITTI camera index the calibration is read for (a raw date folder holds all four).
+    T_ego_cam, T_world_ego : tuple of 16 floats, optional
+        Row-major camera -> ego and ego -> world transforms (nuScenes), stored with
+        ``--store-geometry``.
+    cloud : str, optional
+        The sensor's point cloud (KITTI ``velodyne_points/data/<frame>.bin``, a nuScenes key
+        sweep), stored in the camera frame with ``--store-points``.
+    sweeps : tuple of Sweep
+        The earlier sweeps merged into ``cloud`` (nuScenes), as ``project`` merges them.
     """
 
     id: str
@@ -258,11 +378,19 @@ class DatasetFrameInput:
     split: str | None = None
     inputs_desc: tuple[tuple[str, str], ...] = ()
     sample_params: tuple[tuple[str, object], ...] = ()
+    # -- cameras of a rig and geometry (one block, keep it last)
+    camera: str | None = None
+    calib_camera: int = 2
+    T_ego_cam: tuple[float, ...] | None = None
+    T_world_ego: tuple[float, ...] | None = None
+    cloud: str | None = None
+    sweeps: tuple = ()
 
     @property
     def sources(self) -> tuple[Path, ...]:
         """The input files whose identity decides whether the frame is up to date."""
-        files = (self.rgb, self.sparse_table or self.sparse, self.gt, self.confidence, self.calib)
+        files = (self.rgb, self.sparse_table or self.sparse, self.gt, self.confidence, self.calib,
+                 self.cloud, *(sw.path for sw in self.sweeps))  # fmt: skip
         return tuple(Path(f) for f in files if f is not None)
 
 
@@ -285,9 +413,12 @@ class DatasetFrameStats(FrameStats):
 STAGES = ("t_read", "t_decode", "t_encode", "t_hash", "t_write", "t_stage")
 
 
-def sample_files(x: DatasetFrameInput, sparse_format: str) -> dict[str, str]:
-    """Dataset-relative path of every file a frame writes, by role; the staging record
-    (``staged``, written last: it marks the frame complete) at the end."""
+def sample_files(
+    x: DatasetFrameInput, sparse_format: str, *, store_points: bool = False
+) -> dict[str, str]:
+    """Dataset-relative path of every file a frame writes, by role; with ``store_points``
+    its points (``points``, staged: merged into a part); the staging record (``staged``,
+    written last: it marks the frame complete) at the end."""
     files = {"rgb": f"rgb/{x.id}{Path(x.rgb).suffix.lower()}"}
     if sparse_format in ("png", "both"):
         files["sparse"] = f"{SPARSE_DIR}/{x.id}.png"
@@ -295,6 +426,8 @@ def sample_files(x: DatasetFrameInput, sparse_format: str) -> dict[str, str]:
         src = getattr(x, kind)
         if src is not None:
             files[kind] = f"{kind}/{x.id}{Path(src).suffix.lower()}"
+    if store_points and x.cloud is not None:
+        files["points"] = f"{STAGING}/{x.id}{POINTS_SUFFIX}"
     files["staged"] = f"{STAGING}/{x.id}.rec"
     return files
 
@@ -314,7 +447,7 @@ def stage_frame(
         t[stage] += clock() - t0
         return out
 
-    rel = sample_files(x, settings.sparse_format)
+    rel = sample_files(x, settings.sparse_format, store_points=settings.store_points)
     desc = dict(x.inputs_desc)
 
     # RGB: stored byte for byte with its own suffix.
@@ -385,10 +518,20 @@ def stage_frame(
         writes.append((kdata, src_k, outputs[kind]))
 
     fx = fy = cx = cy = None
+    geometry = {}
     if x.calib is not None:
-        calib = _image_calibration(x.calib, x.rgb, w, h)
+        calib = _image_calibration(x.calib, x.rgb, w, h, x.calib_camera)
         fx, fy, cx, cy = calib.fx, calib.fy, calib.cx, calib.cy
         params["calib"] = desc.get("calib")
+        if settings.geometry:
+            geometry = calibration_geometry(calib, x.calib, x.calib_camera)
+    if settings.geometry:
+        geometry.update(T_ego_cam=x.T_ego_cam, T_world_ego=x.T_world_ego)
+    if "points" in rel:
+        if x.calib is None:
+            raise FormatError(f"frame {fid}: --store-points needs the frame's calibration")
+        cloud = timed("t_encode", camera_points, x.cloud, calib, sweeps=x.sweeps)
+        writes.append((_npy_bytes(cloud), None, outputs["points"]))
     if settings.params:
         params["params"] = settings.params
     if x.sample_params:
@@ -424,6 +567,8 @@ def stage_frame(
         frame_index=None,  # the rank in the sequence, known when the frames are merged
         timestamp=x.timestamp,
         T_world_cam=x.pose,
+        camera=x.camera,
+        **geometry,
     )
     linked = 0
     for wdata, wsrc, wdst in writes:
