@@ -344,3 +344,29 @@ def test_stereo_check_at_the_new_size_scales_fx(raw_root, tmp_path):
     near, far = depth == np.float32(z), depth == np.float32(2 * z)
     assert np.count_nonzero(out[near]) >= 0.95 * np.count_nonzero(near)
     assert np.count_nonzero(out[far]) <= 0.05 * np.count_nonzero(far)
+
+
+@pytest.mark.real
+def test_stored_points_reproject_to_the_resized_maps(raw_root, tmp_path):
+    from sparsetools.io.dataset_reader import DatasetReader
+    from sparsetools.train.transforms import reproject
+
+    out = tmp_path / "pts"
+    summary("dataset", "kitti-raw", raw_root, "-o", out, "--beams", 64, "--resize-to", "640x192",
+            "--store-points")  # fmt: skip
+    ds = DatasetReader(out)
+    assert len(ds) > 0
+    for i in range(len(ds)):
+        xyz, _ring = ds.points(i)
+        depth = reproject(xyz, ds.geometry(i)["intrinsics"], 192, 640)
+        stored = ds.sample(i)["sparse"]
+        assert stored.shape == (192, 640) and (stored > 0).sum() > 1000
+        # the stored PNG holds depth in 1/256 m steps
+        np.testing.assert_array_equal(np.round(depth * 256) / 256, stored)
+
+
+def test_resize_to_with_several_cameras_is_refused(raw_root, tmp_path):
+    r = run("dataset", "kitti-raw", raw_root, "-o", tmp_path / "rig", "--resize-to", "640x192",
+            "--cameras", "image_02,image_03")  # fmt: skip
+    assert r.exit_code == 2 and "several --cameras" in r.output
+    assert not (tmp_path / "rig" / "manifest.parquet").exists()
