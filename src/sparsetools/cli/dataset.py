@@ -28,9 +28,11 @@ from .options import (
     overwrite_option,
     quiet_debug_options,
     resize_option,
+    root_option,
     seed_option,
     sensor_option,
     split_option,
+    store_option,
     sweeps_option,
     threads_option,
 )
@@ -205,13 +207,12 @@ def _split_file_option(*, help: str):
     show_default=True,
     help="Store sparse depth as KITTI PNGs, Parquet points, or both.",
 )
-@click.option(
-    "--copy/--link",
-    "copy",
-    default=True,
-    show_default=True,
-    help="Copy input files, or reflink them (copy-on-write clones where the file system "
-    "has them, else copies; never hard or symbolic links).",
+@store_option
+@deprecated(
+    "--link", "--store link", command="dataset build", dest="store", value="link", is_flag=True
+)
+@deprecated(
+    "--copy", "--store copy", command="dataset build", dest="store", value="copy", is_flag=True
 )
 @click.option(
     "--source",
@@ -239,7 +240,7 @@ def build(
     split_files,
     seed,
     sparse_format,
-    copy,
+    store,
     source,
     params,
     batch,
@@ -262,13 +263,15 @@ def build(
       sparsetools dataset build -o out/kitti --rgb raw --sparse velodyne_raw --split eigen
       sparsetools dataset build -o out/kitti --rgb raw --sparse velodyne_raw \\
           --split-file train=my_train_files.txt --split-file test=my_test_files.txt
+      sparsetools dataset build -o out/ds4_ref --rgb out/scene/image_2 --sparse out/depth4 \\
+          --store reference
     """
     from ..pipeline.core import run_job
     from ..pipeline.dataset import BuildSettings, DatasetJob, find_build_inputs
 
     settings = BuildSettings.with_splits(
         splits, split_files, official_split=official_split, sequence_from=sequence_from, seed=seed,
-        sparse_format=sparse_format, link=not copy, source=source, params=params,
+        sparse_format=sparse_format, store=store, source=source, params=params,
     )  # fmt: skip
     found = find_build_inputs(
         settings, rgb=rgb, sparse=sparse, gt=gt, confidence=confidence, calib=calib
@@ -375,9 +378,11 @@ def nuscenes(root, out_dir, nuscenes_version, camera, sensor, sweeps, resize, cr
     help="Your own split lists, Eigen form (<date>/<drive> <frame> <l|r>); repeat per split."
 )
 @seed_option(help="Seed of the split assignment.")
+@store_option
 @batch_options
 def kitti_raw(root, out_dir, beams, gt_method, filter_occluded, gt_neighbours, stereo_check,
-              icp_min_range, official_split, splits, split_files, seed, batch, as_json):  # fmt: skip
+              icp_min_range, official_split, splits, split_files, seed, store, batch,
+              as_json):  # fmt: skip
     """KITTI raw drives to a dataset: image, N-beam projected LiDAR, LiDAR ground truth.
 
     ROOT is a drive, a date folder (all its drives) or a root of dates. Frames are keyed by
@@ -395,6 +400,7 @@ def kitti_raw(root, out_dir, beams, gt_method, filter_occluded, gt_neighbours, s
           --split-file train=my_train_files.txt --split-file test=my_test_files.txt
       sparsetools dataset kitti-raw /data/kitti_raw/2011_09_26 -o out/kitti_acc \\
           --gt-method accumulated --icp-min-range 20
+      sparsetools dataset kitti-raw /data/kitti_raw -o out/kitti16 --beams 16 --store reference
     """
     from ..pipeline.dataset.roots import build_kitti_raw_dataset
 
@@ -402,7 +408,7 @@ def kitti_raw(root, out_dir, beams, gt_method, filter_occluded, gt_neighbours, s
         root, out_dir, beams=None if beams == 64 else beams, gt=gt_method,
         filter_occluded=filter_occluded, gt_neighbours=gt_neighbours, stereo_check=stereo_check,
         icp_min_range=icp_min_range, split=splits, split_files=split_files or None,
-        official_split=official_split, seed=seed,
+        official_split=official_split, seed=seed, store=store,
         batch=batch,
     )  # fmt: skip
     _summary(summary, as_json, out_dir)
@@ -428,8 +434,9 @@ def kitti_raw(root, out_dir, beams, gt_method, filter_occluded, gt_neighbours, s
     help="Build the 1,000-frame depth_selection/val_selection_cropped set instead (its own "
     "images and intrinsics).",
 )  # fmt: skip
+@store_option
 @batch_options
-def kitti_dc(root, out_dir, raw, sparse_name, gt_name, selection, batch, as_json):
+def kitti_dc(root, out_dir, raw, sparse_name, gt_name, selection, store, batch, as_json):
     """A KITTI depth-completion root to a dataset, split as the tree splits it (train / val).
 
     ROOT holds data_depth_velodyne/ and data_depth_annotated/ ({train,val}/<drive>/proj_depth/
@@ -449,7 +456,7 @@ def kitti_dc(root, out_dir, raw, sparse_name, gt_name, selection, batch, as_json
         raise click.UsageError("--raw (the KITTI raw images) is needed, or use --selection")
     summary = build_kitti_dc_dataset(
         root, out_dir, raw=raw, sparse_name=sparse_name, gt_name=gt_name, selection=selection,
-        batch=batch,
+        store=store, batch=batch,
     )  # fmt: skip
     _summary(summary, as_json, out_dir)
 
@@ -543,10 +550,14 @@ def _export_monodepth2_gt(root, out_dir, split_files, split_from, depth_value, b
 
 @dataset.command("info")
 @click.argument("dataset_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@root_option
 @json_option(help="Print the information as JSON.")
 @quiet_debug_options
-def info(dataset_dir, as_json):
+def info(dataset_dir, roots, as_json):
     """Counts per split, image sizes, density statistics, file sizes, schema version.
+
+    Sizes count what is on disk in the dataset folder (staged sources in .sources/ too) and,
+    apart, the images a --store reference dataset keeps in place.
 
     \b
     Example:
@@ -554,7 +565,7 @@ def info(dataset_dir, as_json):
     """
     from ..pipeline.dataset import dataset_info
 
-    d = dataset_info(dataset_dir)
+    d = dataset_info(dataset_dir, roots=roots)
     click.echo(json.dumps(d.to_dict(), indent=1) if as_json else d.format())
 
 
@@ -563,20 +574,24 @@ def info(dataset_dir, as_json):
 @click.option("--no-hash", is_flag=True, help="Skip the SHA-256 comparison (faster).")
 @threads_option(help="Threads reading and decoding files.")
 @deprecated("--workers", "--threads", command="dataset verify", dest="threads", metavar="N")
+@root_option
 @json_option(help="Print the report as JSON.")
 @quiet_debug_options
-def verify(dataset_dir, no_hash, threads, as_json):
+def verify(dataset_dir, no_hash, threads, roots, as_json):
     """Check every file: present, decodable, sizes consistent, SHA-256 matching the manifest.
 
+    A --store reference dataset's images are checked where they are (--root NAME=PATH when
+    the tree moved): missing, or changed since the build (size, modification time, hash).
     Exits with status 1 and lists the problems when any is found.
 
     \b
-    Example:
+    Examples:
       sparsetools dataset verify out/ds --threads 4
+      sparsetools dataset verify out/kitti4_ref --root kitti=/mnt/new/kitti_raw
     """
     from ..pipeline.dataset import verify_dataset
 
-    report = verify_dataset(dataset_dir, check_hashes=not no_hash, threads=threads)
+    report = verify_dataset(dataset_dir, check_hashes=not no_hash, threads=threads, roots=roots)
     click.echo(json.dumps(report.to_dict(), indent=1) if as_json else report.format())
     if not report.ok:
         raise click.ClickException(f"{len(report.problems)} problem(s) found in {dataset_dir}")

@@ -682,3 +682,54 @@ def video_option(f=None, *, help: str):
         return click.option("--video", is_flag=True, help=help)(fn)
 
     return deco(f) if f is not None else deco
+
+
+# -- datasets ----------------------------------------------------------------------------------
+
+
+def store_option(f=None, *, help: str | None = None):
+    """``--store copy|link|reference``: how a dataset build stores the camera images."""
+
+    def deco(fn):
+        return click.option(
+            "--store",
+            type=click.Choice(["copy", "link", "reference"]),
+            default="copy",
+            show_default=True,
+            help=help
+            or "Camera images: copy them into the dataset, link (reflink: copy-on-write clones "
+            "where the file system has them, else copies), or reference them in place (root "
+            "name, relative path, size / mtime / hash in the manifest; docs/dataset.md).",
+        )(fn)
+
+    return deco(f) if f is not None else deco
+
+
+def _roots_callback(ctx, param, value):
+    out = {}
+    for item in value or ():
+        name, sep, path = item.partition("=")
+        if not sep or not name or not path:
+            raise click.BadParameter(f"expected NAME=PATH, got {item!r}")
+        if name in out:
+            raise click.BadParameter(f"root {name!r} given twice")
+        out[name] = Path(path)
+    return out
+
+
+def root_option(f=None, *, help: str | None = None):
+    """``--root NAME=PATH`` (repeatable): where a root of referenced files is now."""
+
+    def deco(fn):
+        return click.option(
+            "--root",
+            "roots",
+            multiple=True,
+            callback=_roots_callback,
+            metavar="NAME=PATH",
+            help=help
+            or "Where a root of referenced images is now (the tree moved), e.g. "
+            "kitti=/new/place; repeat per root. Default: the paths the build recorded.",
+        )(fn)
+
+    return deco(f) if f is not None else deco

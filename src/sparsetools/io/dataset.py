@@ -25,6 +25,7 @@ import dataclasses
 import hashlib
 import json
 import os
+import re
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
@@ -43,12 +44,14 @@ __all__ = [
     "METADATA_INFO_KEY",
     "METADATA_VERSION_KEY",
     "PART_SCHEMA",
+    "REFERENCE_COLUMNS",
     "SCHEMA_VERSION",
     "SPARSE_DIR",
     "ManifestRow",
     "brief_error",
     "bytes_sha256",
     "check_relative_path",
+    "check_root_name",
     "decode_depth_bytes",
     "depth_to_points",
     "file_sha256",
@@ -58,15 +61,25 @@ __all__ = [
     "read_depth_file",
     "read_manifest",
     "read_sparse_part",
+    "reference_unchanged",
     "resolve_in_dataset",
+    "resolve_reference",
     "write_manifest",
     "write_sparse_part",
 ]
 
 #: Version of the manifest / part layout. Bump on any incompatible change.
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 #: Columns added in schema version 2 (null when a version-1 manifest is read).
 V2_COLUMNS = ("frame_index", "timestamp", "T_world_cam")
+#: Columns added in schema version 3: the camera image referenced in place (``--store
+#: reference``) by a named root, a path relative to it (``rgb_path``) and its identity.
+#: Written only when a row references its image: a dataset that references nothing is
+#: written as a version-2 manifest, exactly as before (older readers read it); read, a
+#: manifest without them has them null.
+REFERENCE_COLUMNS = ("rgb_root", "rgb_size", "rgb_mtime_ns")
+#: Schema version of a manifest without :data:`REFERENCE_COLUMNS`.
+BASE_SCHEMA_VERSION = 2
 MANIFEST_NAME = "manifest.parquet"
 SPARSE_DIR = "sparse"
 METADATA_VERSION_KEY = b"sparsetools.schema_version"
@@ -88,6 +101,10 @@ MANIFEST_SCHEMA = pa.schema(
         pa.field("cx", pa.float64()),
         pa.field("cy", pa.float64()),
         pa.field("rgb_path", pa.string(), nullable=False),
+        # version 3: the image referenced in place (REFERENCE_COLUMNS)
+        pa.field("rgb_root", pa.string()),
+        pa.field("rgb_size", pa.int64()),
+        pa.field("rgb_mtime_ns", pa.int64()),
         pa.field("sparse_path", pa.string()),
         pa.field("sparse_parquet", pa.string()),
         pa.field("sparse_row", pa.int32()),
@@ -128,6 +145,16 @@ class ManifestRow:
     fx, fy, cx, cy : float, optional
         Intrinsics, pixels.
     rgb_path : str
+        Relative to the dataset; or, with ``rgb_root``, to that root.
+    rgb_root : str, optional
+        The image is referenced in place (``--store reference``, schema version 3): the name
+        of its root (``rgb``, ``kitti``), whose path the manifest's build information
+        records (``roots``) and :class:`~sparsetools.io.dataset_reader.DatasetReader` can be
+        given again. None: the image is in the dataset.
+    rgb_size, rgb_mtime_ns : int, optional
+        The referenced image's identity when it was built: bytes and modification time (ns);
+        with ``rgb_sha256`` for files up to :data:`sparsetools.io.provenance.HASH_LIMIT`
+        bytes (:func:`reference_unchanged`).
     sparse_path : str, optional
         Sparse depth as a KITTI uint16 PNG.
     sparse_parquet : str, optional
@@ -167,6 +194,9 @@ class ManifestRow:
     cx: float | None
     cy: float | None
     rgb_path: str
+    rgb_root: str | None
+    rgb_size: int | None
+    rgb_mtime_ns: int | None
     sparse_path: str | None
     sparse_parquet: str | None
     sparse_row: int | None
@@ -286,6 +316,58 @@ def resolve_in_dataset(root: str | os.PathLike, rel: str, *, what: str = "path")
     if real != real_root and not real.startswith(real_root.rstrip(os.sep) + os.sep):
         raise FormatError(f"{what}: {rel!r} resolves outside the dataset (symbolic link?)")
     return path
+
+
+# -- references: raw files kept in place (--store reference) -----------------------------------------
+_ROOT_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$")
+
+
+def check_root_name(name: str, *, what: str = "root") -> str:
+    """A root's name (``rgb``, ``kitti``): letters, digits, ``_ . -``, not starting with
+    ``.`` or ``-``, at most 64 characters; else :class:`FormatError`."""
+    if not isinstance(name, str) or not _ROOT_NAME.match(name):
+        raise FormatError(f"{what}: {name!r} is not a root name (letters, digits, _ . -)")
+    return name
+
+
+def resolve_reference(root: str | os.PathLike, rel: str, *, name: str, sample: str = "") -> Path:
+    """The file a reference names: ``root / rel``, refused (:class:`FormatError`, one line)
+    when ``rel`` is absolute, holds ``..`` or a symbolic link takes it outside ``root``.
+
+    A manifest is untrusted input: its references may only reach files inside their root
+    (:func:`sparsetools.io.containment.contained_record_path`, then the real path checked).
+    """
+    from .containment import contained_record_path
+
+    who = f"sample '{sample}': " if sample else ""
+    path = contained_record_path(root, rel)
+    if path is None:
+        raise FormatError(
+            f"{who}reference {rel!r} of root '{name}' is not a plain relative path "
+            "(absolute paths and '..' are refused)"
+        )
+    real_root = os.path.realpath(root)
+    real = os.path.realpath(path)
+    if not real.startswith(real_root.rstrip(os.sep) + os.sep):
+        raise FormatError(
+            f"{who}reference {rel!r} resolves outside its root '{name}' ({root}): "
+            "a symbolic link leaving the root is refused"
+        )
+    return path
+
+
+def reference_unchanged(row: ManifestRow, st: os.stat_result, sha256: str | None = None) -> bool:
+    """Whether the referenced image is still the file the build recorded, by the rule of the
+    provenance record (:meth:`sparsetools.io.provenance.FileIdentity.same_file`): same size
+    and (same modification time, or, for a file of at most ``HASH_LIMIT`` bytes, the same
+    SHA-256). ``sha256``: the file's hash now, when the caller has it (small files)."""
+    from .provenance import HASH_LIMIT
+
+    if int(st.st_size) != row.rgb_size:
+        return False
+    if int(st.st_mtime_ns) == row.rgb_mtime_ns:
+        return True
+    return row.rgb_size <= HASH_LIMIT and sha256 is not None and sha256 == row.rgb_sha256
 
 
 # -- hashing -----------------------------------------------------------------------------------
@@ -454,8 +536,16 @@ def write_manifest(path: str | os.PathLike, table: pa.Table, *, info: dict | Non
         for rel in table.column(col).to_pylist():
             if rel is not None:
                 check_relative_path(rel, what=col)
+    for name in table.column("rgb_root").to_pylist():
+        if name is not None:
+            check_root_name(name, what="rgb_root")
+    version = SCHEMA_VERSION
+    if table.column("rgb_root").null_count == table.num_rows:
+        # Nothing referenced: the version-2 manifest of before, column for column.
+        table = table.drop_columns(list(REFERENCE_COLUMNS))
+        version = BASE_SCHEMA_VERSION
     meta = {
-        METADATA_VERSION_KEY: str(SCHEMA_VERSION).encode(),
+        METADATA_VERSION_KEY: str(version).encode(),
         METADATA_INFO_KEY: json.dumps(info or {}, sort_keys=True).encode(),
     }
     table = table.replace_schema_metadata(meta)
@@ -499,8 +589,9 @@ def read_manifest(path: str | os.PathLike) -> tuple[pa.Table, dict]:
             f"{path}: schema version {version} was written by a newer sparsetools "
             f"(this one reads up to {SCHEMA_VERSION})"
         )
-    for name in V2_COLUMNS:
-        if version < 2 and name not in table.column_names:
+    added = [*(V2_COLUMNS if version < 2 else ()), *REFERENCE_COLUMNS]
+    for name in added:
+        if name not in table.column_names:
             typ = MANIFEST_SCHEMA.field(name).type
             table = table.append_column(name, pa.nulls(table.num_rows, type=typ))
     missing = [f.name for f in MANIFEST_SCHEMA if f.name not in table.column_names]
@@ -533,6 +624,14 @@ def read_manifest(path: str | os.PathLike) -> tuple[pa.Table, dict]:
         for rel in table.column(col).to_pylist():
             if rel is not None:
                 check_relative_path(rel, what=f"{path.name} column {col}")
+    for name in table.column("rgb_root").to_pylist():
+        if name is not None:
+            check_root_name(name, what=f"{path.name} column rgb_root")
+    roots = info.get("roots", {})
+    if not isinstance(roots, dict) or not all(
+        isinstance(k, str) and isinstance(v, str) for k, v in roots.items()
+    ):
+        raise FormatError(f"{path}: corrupt dataset metadata (roots is not a name -> path map)")
     return table, info
 
 
@@ -558,6 +657,13 @@ def _check_manifest_values(table: pa.Table, path: Path) -> None:
         raise FormatError(f"{path}: a sample refers to a sparse part without a valid sparse_row")
     if (table.column("n_sparse").to_numpy() < 0).any():
         raise FormatError(f"{path}: a sample has a negative n_sparse")
+    ref = table.column("rgb_root").is_valid().to_numpy(zero_copy_only=False)
+    for col in ("rgb_size", "rgb_mtime_ns"):
+        c = table.column(col)
+        if (ref & ~c.is_valid().to_numpy(zero_copy_only=False)).any():
+            raise FormatError(f"{path}: a referenced image (rgb_root) has no {col}")
+    if (table.column("rgb_size").fill_null(0).to_numpy() < 0).any():
+        raise FormatError(f"{path}: a sample has a negative rgb_size")
 
 
 def write_sparse_part(

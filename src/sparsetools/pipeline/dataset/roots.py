@@ -219,6 +219,7 @@ def build_kitti_raw_dataset(
     official_split: str | None = None,
     seed: int = 0,
     sparse_format: str = "both",
+    store: str = "copy",
     batch: Batch | None = None,
 ) -> RunSummary:
     """KITTI raw drives (a drive, a date folder or a root of dates) -> dataset: the camera
@@ -238,6 +239,9 @@ def build_kitti_raw_dataset(
       windows clipped at a drive's ends use what they have. Then ``stereo_check``: drop the
       points that disagree with SGBM stereo of image_02 / image_03
       (:mod:`sparsetools.ops.stereo`); None: on for the frames whose image_03 exists.
+
+    ``store``: ``copy`` the images into the dataset, ``link`` (reflinks) or ``reference``:
+    leave them in the tree, recorded relative to the root ``kitti`` (``root``).
 
     Raises
     ------
@@ -316,6 +320,8 @@ def build_kitti_raw_dataset(
         official_split=official_split,
         seed=seed,
         sparse_format=sparse_format,
+        store=store,
+        rgb_root_name="kitti",
         source="lidar" if beams is None else f"lidar-{beams}beam",
         camera=camera,
         params=params,
@@ -436,6 +442,7 @@ def build_kitti_dc_dataset(
     selection: bool = False,
     camera: int = 2,
     sparse_format: str = "both",
+    store: str = "copy",
     batch: Batch | None = None,
 ) -> RunSummary:
     """A KITTI depth-completion root -> dataset, split as the tree splits it.
@@ -444,7 +451,9 @@ def build_kitti_dc_dataset(
     with ``{train,val}/<drive>/proj_depth/``); images come from the KITTI raw tree ``raw``.
     ``selection``: the 1,000-frame ``depth_selection/val_selection_cropped`` set instead, with
     its own images and intrinsics (split ``val_selection``). Frames without ground truth (the
-    first and last 5 of each drive) are counted in the summary's ``unmatched``.
+    first and last 5 of each drive) are counted in the summary's ``unmatched``. ``store``: as
+    :func:`build_kitti_raw_dataset`'s; the images are referenced relative to the root
+    ``kitti`` (``raw``; with ``selection``, the selection folder).
     """
     root = Path(root)
     if selection:
@@ -452,7 +461,8 @@ def build_kitti_dc_dataset(
         sel = sel if sel.is_dir() else root
         return build_dataset(
             out_dir, rgb=sel, sparse=sel, gt=sel, calib=sel, split="tree",
-            sparse_format=sparse_format, source="lidar", camera=camera,
+            sparse_format=sparse_format, source="lidar", camera=camera, store=store,
+            rgb_root_name="kitti",
             params={"route": "kitti-dc", "selection": True}, param_options=KITTI_DC_OPTIONS,
             batch=batch,
         )  # fmt: skip
@@ -469,7 +479,8 @@ def build_kitti_dc_dataset(
     gt = root / "data_depth_annotated" if (root / "data_depth_annotated").is_dir() else root
     return build_dataset(
         out_dir, rgb=raw, sparse=sparse, gt=gt, split="tree", sparse_name=sparse_name,
-        gt_name=gt_name, sparse_format=sparse_format, camera=camera,
+        gt_name=gt_name, sparse_format=sparse_format, camera=camera, store=store,
+        rgb_root_name="kitti",
         source=f"lidar-{sparse_name}" if sparse_name else "lidar",
         params={"route": "kitti-dc", "sparse": sparse_name or "velodyne_raw"},
         param_options=KITTI_DC_OPTIONS, batch=batch,
