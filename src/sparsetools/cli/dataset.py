@@ -597,6 +597,32 @@ def verify(dataset_dir, no_hash, threads, roots, as_json):
         raise click.ClickException(f"{len(report.problems)} problem(s) found in {dataset_dir}")
 
 
+@dataset.command("pack")
+@click.argument("dataset_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@output_dir_option(
+    help="The packed dataset (created; refused if it holds what pack did not write)."
+)
+@root_option
+@batch_options
+def pack(dataset_dir, out_dir, roots, batch, as_json):
+    """Make a self-contained copy of a dataset whose images are referenced in place.
+
+    Every referenced image is copied in (checked against the size and SHA-256 the manifest
+    recorded; a changed one is refused), with the sample's other files and the Parquet parts;
+    the manifest is rewritten as --store copy writes it. --root NAME=PATH when a tree moved.
+
+    \b
+    Examples:
+      sparsetools dataset kitti-raw /data/kitti_raw -o out/kitti4 --beams 4 --store reference
+      sparsetools dataset pack out/kitti4 -o out/kitti4_packed
+      sparsetools dataset pack out/kitti4 -o out/kitti4_packed --root kitti=/mnt/kitti_raw
+    """
+    from ..pipeline.dataset.pack import pack_dataset
+
+    summary = pack_dataset(dataset_dir, out_dir, roots=roots, batch=batch)
+    emit_summary(summary, as_json=as_json, title=f"packed dataset written to {out_dir}")
+
+
 @dataset.command("report")
 @click.argument("dataset_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @output_dir_option(
