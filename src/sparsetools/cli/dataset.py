@@ -28,14 +28,13 @@ from .options import (
     overwrite_option,
     quiet_debug_options,
     resize_option,
-    root_option,
     seed_option,
     sensor_option,
     split_option,
-    store_option,
     sweeps_option,
     threads_option,
 )
+from .parsing import named_paths
 
 
 def _splits_callback(ctx, param, value):
@@ -132,6 +131,23 @@ def _params_callback(ctx, param, value):
     if not isinstance(obj, dict):
         raise click.BadParameter("expected the generation parameters as a JSON object")
     return obj
+
+
+def store_option(f):
+    """``--store``: how a dataset build stores the camera images."""
+    return click.option(
+        "--store", type=click.Choice(["copy", "link", "reference"]), default="copy",
+        show_default=True, help="Camera images: copy them in, link (reflinks where the file "
+        "system has them, else copies) or reference them in place (docs/dataset.md).",
+    )(f)  # fmt: skip
+
+
+def root_option(f):
+    """``--root NAME=PATH``, repeatable: where a root of referenced files is now."""
+    return click.option(
+        "--root", "roots", multiple=True, callback=named_paths, metavar="NAME=PATH",
+        help="Where a root of referenced images is now (default: where the build found it).",
+    )(f)  # fmt: skip
 
 
 @click.group("dataset")
@@ -617,9 +633,11 @@ def pack(dataset_dir, out_dir, roots, batch, as_json):
       sparsetools dataset pack out/kitti4 -o out/kitti4_packed
       sparsetools dataset pack out/kitti4 -o out/kitti4_packed --root kitti=/mnt/kitti_raw
     """
-    from ..pipeline.dataset.pack import pack_dataset
+    from ..pipeline.core import run_job
+    from ..pipeline.dataset.pack import pack_plan
 
-    summary = pack_dataset(dataset_dir, out_dir, roots=roots, batch=batch)
+    job, frames, inputs = pack_plan(dataset_dir, roots=roots)
+    summary = run_job(job, frames, out_dir, batch=batch, inputs=inputs, desc="pack")
     emit_summary(summary, as_json=as_json, title=f"packed dataset written to {out_dir}")
 
 

@@ -34,7 +34,7 @@ from ...io.dataset import (
 from ..batch import Batch, RunSummary
 from ..core import BatchJob, FrameStats, FrameTask, run_job
 
-__all__ = ["PackJob", "PackStats", "pack_dataset", "packed_row"]
+__all__ = ["PackJob", "PackStats", "pack_dataset", "pack_plan", "packed_row"]
 
 #: The files of a sample other than its image: column of the path, column of the hash.
 _OWN_FILES = (
@@ -174,6 +174,36 @@ class PackJob(BatchJob[PackInput]):
         }
 
 
+def pack_plan(
+    dataset: str | os.PathLike, *, roots: Mapping[str, str | os.PathLike] | None = None
+) -> tuple[PackJob, list[PackInput], list[Path]]:
+    """The job packing ``dataset``, its samples (each file located: a referenced image in its
+    root, :func:`~sparsetools.io.dataset_reader.resolve_rgb`) and the input folders (``-o``
+    may not be inside one), for :func:`~sparsetools.pipeline.core.run_job`.
+
+    Raises
+    ------
+    FormatError
+        A referenced image cannot be found (root unknown or moved, file gone) or its
+        reference leaves its root.
+    """
+    from ...io.dataset_reader import resolve_rgb, sample_roots
+
+    src = Path(dataset).absolute()
+    table, info = read_manifest(src / MANIFEST_NAME)
+    where = sample_roots(info, roots)
+    frames = []
+    for r in ManifestRow.from_table(table):
+        files = [("rgb", str(resolve_rgb(src, r, where)))]
+        for role, col, _ in _OWN_FILES:
+            rel = getattr(r, col)
+            if rel is not None:
+                files.append((role, str(resolve_in_dataset(src, rel, what=col))))
+        frames.append(PackInput(r, tuple(files)))
+    job = PackJob(str(src), tuple(sorted((k, str(v)) for k, v in where.items())))
+    return job, frames, [src, *(p for p in where.values() if p.is_dir())]
+
+
 def pack_dataset(
     dataset: str | os.PathLike,
     out_dir: str | os.PathLike,
@@ -200,19 +230,5 @@ def pack_dataset(
     FormatError
         A referenced image is missing, or differs from the manifest (size or SHA-256).
     """
-    from ...io.dataset_reader import resolve_rgb, sample_roots
-
-    src = Path(dataset).absolute()
-    table, info = read_manifest(src / MANIFEST_NAME)
-    where = sample_roots(info, roots)
-    frames = []
-    for r in ManifestRow.from_table(table):
-        files = [("rgb", str(resolve_rgb(src, r, where)))]
-        for role, col, _ in _OWN_FILES:
-            rel = getattr(r, col)
-            if rel is not None:
-                files.append((role, str(resolve_in_dataset(src, rel, what=col))))
-        frames.append(PackInput(r, tuple(files)))
-    job = PackJob(str(src), tuple(sorted((k, str(v)) for k, v in where.items())))
-    inputs = [src, *(p for p in where.values() if p.is_dir())]
+    job, frames, inputs = pack_plan(dataset, roots=roots)
     return run_job(job, frames, out_dir, batch=batch or Batch(), inputs=inputs, desc="pack")
