@@ -630,7 +630,14 @@ def verify_dataset(
         warnings.append(
             f"{STAGING}/ holds frames of an unfinished build (rerun the build to add them)"
         )
-    changed, moved = _changed_inputs(root, {r.id for r in rows})
+    # A referenced image is checked above, where it is now: not again as an input of the build.
+    recorded = sample_roots(info, None)
+    referenced = {
+        os.path.realpath(Path(recorded[r.rgb_root], r.rgb_path))
+        for r in rows
+        if r.rgb_root is not None and r.rgb_root in recorded
+    }
+    changed, moved = _changed_inputs(root, {r.id for r in rows}, skip=referenced)
     for sid, path in changed:
         problems.append(
             f"{sid}: input {path} changed since the build (rerun 'dataset build' to update)"
@@ -653,9 +660,10 @@ def verify_dataset(
     )
 
 
-def _changed_inputs(root: Path, ids: set[str]) -> tuple[list, list]:
+def _changed_inputs(root: Path, ids: set[str], skip: set[str] = frozenset()) -> tuple[list, list]:
     """(sample, input) pairs whose input file differs from the build's record, and those
-    whose input is gone. A dataset without a record (older sparsetools) reports none."""
+    whose input is gone (inputs at the paths ``skip`` left out). A dataset without a record
+    (older sparsetools) reports none."""
     from ...io.provenance import file_identity, read_frame_records
 
     changed, gone = [], []
@@ -668,6 +676,8 @@ def _changed_inputs(root: Path, ids: set[str]) -> tuple[list, list]:
         if sid not in ids:
             continue
         for old in records[sid].inputs:
+            if old.path in skip:
+                continue
             now = cache.get(old.path)
             if now is None:
                 now = cache[old.path] = file_identity(old.path)

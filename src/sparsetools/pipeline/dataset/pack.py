@@ -31,6 +31,7 @@ from ...io.dataset import (
     resolve_in_dataset,
     write_manifest,
 )
+from ...io.provenance import RECORD_DIR, RUN_FILE
 from ..batch import Batch, RunSummary
 from ..core import BatchJob, FrameStats, FrameTask, run_job
 
@@ -97,6 +98,14 @@ class PackJob(BatchJob[PackInput]):
     def tasks(self, frames: list[PackInput], out_dir: Path) -> list[FrameTask[PackInput]]:
         if os.path.realpath(out_dir) == os.path.realpath(self.dataset):
             raise OutputError(f"{out_dir} is the dataset itself: give another -o")
+        if (
+            any(p.name != RECORD_DIR for p in out_dir.iterdir())
+            and not (out_dir / RECORD_DIR / RUN_FILE).is_file()
+        ):
+            raise OutputError(
+                f"{out_dir} is not empty and was not written by dataset pack: choose a new or "
+                "empty folder"
+            )
         tasks = []
         for x in frames:
             r = packed_row(x.row)
