@@ -297,3 +297,18 @@ def test_info_counts_the_dataset_and_the_referenced_bytes(copy_ds, ref, tmp_path
     assert dataset_info(out).missing_references == N
     r = run("dataset", "info", out, "--root", f"kitti={moved}", "--json")
     assert r.exit_code == 0 and json.loads(r.stdout)["referenced_bytes"] == images
+
+
+def test_report_thumbnails_and_viz_read_referenced_images(copy_ds, ref):
+    """The dataset report's thumbnails and viz's dataset frames find a referenced image where
+    it is (not in the dataset), the thumbnail the same as the copy dataset's."""
+    from sparsetools.pipeline.dataset.report_data import thumbnail
+    from sparsetools.pipeline.viz import _dataset_frames
+
+    raw, out = ref
+    a, b = DatasetReader(copy_ds), DatasetReader(out)
+    ta = thumbnail(a, a.row(0), max_depth=80.0)
+    tb = thumbnail(b, b.row(0), max_depth=80.0)
+    assert ta == tb and len(ta.jpeg) > 0
+    frames, _, _ = _dataset_frames(out, None, None)
+    assert image(raw, 0) in frames[0].sources

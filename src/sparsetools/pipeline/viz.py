@@ -328,7 +328,7 @@ def _dataset_frames(root: Path, split: str | None, frame_range: str):
     frames = []
     for i in range(len(reader)):
         r = reader.row(i)
-        files = [root / MANIFEST_NAME, reader.path(r.rgb_path, what="rgb_path")]
+        files = [root / MANIFEST_NAME, reader.rgb_path(i)]  # in the dataset, or referenced
         for rel, what in ((r.sparse_parquet, "sparse_parquet"), (r.sparse_path, "sparse_path"),
                           (r.gt_path, "gt_path")):  # fmt: skip
             if rel is not None:
