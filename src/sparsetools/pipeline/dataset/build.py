@@ -388,6 +388,7 @@ class DatasetJob(BatchJob[DatasetFrameInput]):
 
     def option_names(self) -> dict:
         names = dict(option_names(self.settings))
+        names["link"] = "--store link"  # recorded as 0.2 / 0.3 did (BuildSettings.record_store)
         names.update({f"params.{k}": v for k, v in self.param_options.items()})
         return names
 
