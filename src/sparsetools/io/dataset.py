@@ -4,7 +4,9 @@ Layout (METHODS.md section 6; docs/dataset.md has the full schema table)::
 
     DATASET/
       manifest.parquet          one row per sample (schema: MANIFEST_SCHEMA)
-      rgb/<id>.png|.jpg         camera images, copied byte for byte (or hard-linked)
+      rgb/<id>.png|.jpg         camera images, copied byte for byte (or reflinked); with
+                                --store reference not here: the manifest names each by a
+                                root, a path in it and its identity (schema version 3)
       sparse/<id>.png           sparse depth, KITTI uint16 PNG (--sparse-format png|both)
       sparse/part-00000.parquet sparse depth as points, one row per frame (parquet|both)
       gt/<id>.png|.npy          ground-truth depth (optional)
