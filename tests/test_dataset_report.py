@@ -19,7 +19,8 @@ import pytest
 from click.testing import CliRunner
 
 from sparsetools.cli.main import cli
-from sparsetools.io.dataset import ManifestRow, read_depth_file, read_manifest
+from sparsetools.io.dataset import ManifestRow, read_manifest
+from sparsetools.io.depth_files import read_depth_file
 from sparsetools.io.image import write_depth_png, write_image
 from sparsetools.pipeline.dataset import dataset_info
 

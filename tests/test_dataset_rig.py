@@ -20,7 +20,7 @@ import pytest
 from click.testing import CliRunner
 
 from sparsetools.cli.main import cli
-from sparsetools.io.dataset import MANIFEST_SCHEMA, OPTIONAL_SCHEMA
+from sparsetools.io.dataset import MANIFEST_SCHEMA, OPTIONAL_SCHEMA, REFERENCE_COLUMNS
 from sparsetools.io.dataset_reader import DatasetReader
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -180,7 +180,9 @@ def test_one_camera_build_writes_no_optional_column(raw, tmp_path):
     bytes); such a dataset reads with the geometry None."""
     out = tmp_path / "ds"
     run(["dataset", "kitti-raw", raw, "-o", out, "--beams", "64"])
-    assert pq.read_schema(out / "manifest.parquet").names == MANIFEST_SCHEMA.names
+    # neither the optional columns nor those of --store reference (REFERENCE_COLUMNS)
+    expected = [n for n in MANIFEST_SCHEMA.names if n not in REFERENCE_COLUMNS]
+    assert pq.read_schema(out / "manifest.parquet").names == expected
     ds = DatasetReader(out)
     assert ds.ids[0] == "2011_09_26_drive_0001_sync/0000000000"
     g = ds.geometry(0)

@@ -300,7 +300,7 @@ def test_eval_plot(depth_pair, tmp_path):
     assert bins == brief["depth_bins"]
     assert bins["edges_m"] == [0.0, 5.0, 10.0, 20.0, 30.0, 40.0, 50.0, 60.0, 70.0, 80.0]
     # pooled errors by bin, against a reference computed here from the files
-    from sparsetools.io.dataset import read_depth_file
+    from sparsetools.io.depth_files import read_depth_file
 
     g = np.concatenate([read_depth_file(f).ravel() for f in sorted(gt.glob("*.png"))])
     p = np.concatenate([read_depth_file(f).ravel() for f in sorted(pred.glob("*.png"))])

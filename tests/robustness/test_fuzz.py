@@ -241,7 +241,7 @@ def test_image_size_of(tmp_path):
 
 @pytest.mark.parametrize("suffix", [".png", ".npy"])
 def test_dataset_depth_and_confidence_decoders(suffix):
-    from sparsetools.io.dataset import decode_confidence_bytes, decode_depth_bytes
+    from sparsetools.io.depth_files import decode_confidence_bytes, decode_depth_bytes
 
     seeds = IMAGE_SEEDS if suffix == ".png" else (npy_bytes(depth_map(0, 16, 8)),)
 

@@ -363,7 +363,7 @@ def test_eval_of_depth_files_needs_no_torch_and_gives_the_same_numbers(tmp_path)
     assert with_torch.exit_code == 0
     assert alone["metrics"] == json.loads(with_torch.stdout)["metrics"]
     # and the files it wrote hold the same per-image numbers as the straight metrics
-    from sparsetools.io.dataset import read_depth_file
+    from sparsetools.io.depth_files import read_depth_file
     from sparsetools.ops.metrics import depth_metrics
 
     saved = json.loads((tmp_path / "out" / "m.json").read_text())

@@ -540,7 +540,7 @@ def test_pipeline_config_that_is_a_fifo_is_refused_at_once(tmp_path):
 
 
 def test_npy_input_has_the_pixel_limit_of_png_inputs(tmp_path, monkeypatch):
-    from sparsetools.io.dataset import read_depth_file
+    from sparsetools.io.depth_files import read_depth_file
 
     d = write(tmp_path / "d.npy", npy_bytes(np.ones((20, 30), np.float32)))
     assert read_depth_file(d).shape == (20, 30)

@@ -7,13 +7,19 @@ from pathlib import Path
 
 import click
 
-from ..errors import ParameterError
+from .dataset_options import (
+    params_callback,
+    root_option,
+    sequence_callback,
+    split_file_option,
+    splits_option,
+    store_option,
+)
 from .options import (
     batch_options,
     calib_option,
     camera_option,
     cameras_option,
-    checked,
     crop_option,
     deprecated,
     emit_summary,
@@ -22,9 +28,7 @@ from .options import (
     icp_min_range_option,
     json_option,
     layout_option,
-    named_split,
     nuscenes_version_option,
-    one_split_choice,
     output_dir_option,
     overwrite_option,
     quiet_debug_options,
@@ -40,102 +44,6 @@ from .options import (
 )
 
 
-def _splits_callback(ctx, param, value):
-    if value is None or value == "tree":
-        return value
-    from ..pipeline.dataset import parse_split_fractions
-
-    return checked(parse_split_fractions)(ctx, param, value)
-
-
-#: The official splits each route takes (``--split NAME``), as the help names them; the
-#: catalogue is :mod:`sparsetools.pipeline.dataset.official_splits` (a test keeps them equal).
-SPLIT_NAMES = {
-    "kitti": ("eigen", "eigen_full", "eigen_benchmark", "odom"),
-    "nuscenes": ("official", "mini"),
-}
-_SPLIT_HELP = {
-    "kitti": "eigen (Eigen-Zhou train/val, Eigen test), eigen_full, eigen_benchmark, odom",
-    "nuscenes": "official (train/val/test scenes), mini (mini_train/mini_val)",
-}
-
-
-def splits_option(*, dataset: str, tree: bool = False):
-    """The split of a built dataset, one choice of three: ``--split NAME`` (an official split
-    of ``dataset``: ``kitti`` or ``nuscenes``), ``--splits`` (fractions over sequences;
-    ``tree``: or the input tree's split) and ``--split-file`` (lists), passed as
-    ``official_split``, ``splits`` and ``split_files``. ``--split FRACTIONS``, 0.2's spelling
-    of ``--splits``, still works with a warning."""
-    metavar = "TRAIN,VAL,TEST|tree" if tree else "TRAIN,VAL,TEST"
-    text = "Split fractions over sequences [default: 0.8,0.1,0.1]; or name=fraction,..."
-    if tree:
-        text += "; or 'tree': the split of a KITTI depth-completion tree (train / val)."
-    unit = "scene" if dataset == "nuscenes" else "frame"
-    official = (f"An official split list set shipped with sparsetools: {_SPLIT_HELP[dataset]}; "
-                f"each {unit} goes to the split whose list names it, unlisted ones are left "
-                "out (docs/dataset.md).")  # fmt: skip
-
-    def deco(f):
-        f = one_split_choice(f)
-        f = click.option(
-            "--splits", "splits", callback=_splits_callback, metavar=metavar, help=text
-        )(f)
-        return split_option("official_split", callback=named_split(dataset), help=official)(f)
-
-    return deco
-
-
-def _sequence_callback(ctx, param, value):
-    from ..pipeline.dataset import sequence_resolver
-
-    checked(lambda v: sequence_resolver(v, "sequence"))(ctx, param, value)
-    return value
-
-
-def _split_file_callback(ctx, param, value):
-    out = []
-    for item in value or ():
-        name, sep, path = item.partition("=")
-        if sep and not Path(item).exists():
-            if not name or not Path(path).is_file():
-                raise click.BadParameter(f"expected NAME=PATH with an existing file, got {item!r}")
-            out.append((name, path))
-        elif ":" in item and not Path(item).exists():  # a shipped list: eigen:test
-            from ..pipeline.dataset.official_splits import shipped_split_file
-
-            try:
-                part, path = shipped_split_file(item)
-            except ParameterError as exc:
-                raise click.BadParameter(str(exc)) from None
-            out.append((part, str(path)))
-        else:
-            if not Path(item).is_file():
-                raise click.BadParameter(f"no such split file: {item}")
-            out.append(item)
-    return tuple(out)
-
-
-def _params_callback(ctx, param, value):
-    if value is None:
-        return None
-    text = value
-    if not value.lstrip().startswith("{"):
-        p = Path(value)
-        if not p.is_file():
-            raise click.BadParameter("expected a JSON object or a JSON file")
-        try:
-            text = p.read_text(encoding="utf-8")
-        except (OSError, UnicodeDecodeError) as exc:
-            raise click.BadParameter(f"cannot read {value} as UTF-8 JSON ({exc})") from None
-    try:
-        obj = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise click.BadParameter(f"not valid JSON ({exc})") from None
-    if not isinstance(obj, dict):
-        raise click.BadParameter("expected the generation parameters as a JSON object")
-    return obj
-
-
 @click.group("dataset")
 def dataset():
     """Build, inspect and verify training datasets (Parquet manifest + PNG/Parquet files).
@@ -149,16 +57,6 @@ def dataset():
       sparsetools dataset verify out/ds
     See docs/dataset.md for the on-disk format.
     """
-
-
-def _split_file_option(*, help: str):
-    """``--split-file [NAME=]FILE``, repeatable: the frames of one split by list (or a
-    shipped list, ``NAME:SPLIT`` such as ``eigen:test``)."""
-    return click.option(
-        "--split-file", "split_files", multiple=True, callback=_split_file_callback,
-        metavar="[NAME=]FILE|LIST:SPLIT", help=help + " A shipped list is named LIST:SPLIT "
-        "(eigen:test, eigen_benchmark:test, official:val).",
-    )  # fmt: skip
 
 
 @dataset.command("build")
@@ -191,13 +89,13 @@ def _split_file_option(*, help: str):
     "--sequence-from",
     default="parent",
     show_default=True,
-    callback=_sequence_callback,
+    callback=sequence_callback,
     metavar="parent|regex:PATTERN",
     help="Sequence of a frame: its folder, or a regex on its relative path "
     "(group 'sequence' or group 1).",
 )
 @splits_option(dataset="kitti", tree=True)
-@_split_file_option(
+@split_file_option(
     help="Split list (KITTI Eigen form, or one id or sequence per line); repeat per split. "
     "The split name comes from NAME= or the file name (train/val/test)."
 )
@@ -209,13 +107,12 @@ def _split_file_option(*, help: str):
     show_default=True,
     help="Store sparse depth as KITTI PNGs, Parquet points, or both.",
 )
-@click.option(
-    "--copy/--link",
-    "copy",
-    default=True,
-    show_default=True,
-    help="Copy input files, or reflink them (copy-on-write clones where the file system "
-    "has them, else copies; never hard or symbolic links).",
+@store_option
+@deprecated(
+    "--link", "--store link", command="dataset build", dest="store", value="link", is_flag=True
+)
+@deprecated(
+    "--copy", "--store copy", command="dataset build", dest="store", value="copy", is_flag=True
 )
 @click.option(
     "--source",
@@ -225,7 +122,7 @@ def _split_file_option(*, help: str):
 )
 @click.option(
     "--params",
-    callback=_params_callback,
+    callback=params_callback,
     metavar="JSON|FILE",
     help="Generation parameters (JSON object) stored in every new row.",
 )
@@ -244,7 +141,7 @@ def build(
     split_files,
     seed,
     sparse_format,
-    copy,
+    store,
     source,
     params,
     store_geometry,
@@ -268,13 +165,15 @@ def build(
       sparsetools dataset build -o out/kitti --rgb raw --sparse velodyne_raw --split eigen
       sparsetools dataset build -o out/kitti --rgb raw --sparse velodyne_raw \\
           --split-file train=my_train_files.txt --split-file test=my_test_files.txt
+      sparsetools dataset build -o out/ds4_ref --rgb out/scene/image_2 --sparse out/depth4 \\
+          --store reference
     """
     from ..pipeline.core import run_job
     from ..pipeline.dataset import BuildSettings, DatasetJob, find_build_inputs
 
     settings = BuildSettings.with_splits(
         splits, split_files, official_split=official_split, sequence_from=sequence_from, seed=seed,
-        sparse_format=sparse_format, link=not copy, source=source, params=params,
+        sparse_format=sparse_format, store=store, source=source, params=params,
         geometry=store_geometry,
     )  # fmt: skip
     found = find_build_inputs(
@@ -317,7 +216,7 @@ def _summary(summary, as_json, out_dir) -> None:
     help="Scenes by their description: all, only night ones, or only day ones.",
 )  # fmt: skip
 @splits_option(dataset="nuscenes")
-@_split_file_option(help="Scene list (one scene name per line); repeat per split. The split "
+@split_file_option(help="Scene list (one scene name per line); repeat per split. The split "
                     "name comes from NAME= or the file name (train/val/test).")  # fmt: skip
 @seed_option(help="Seed of the split assignment.")
 @cameras_option(help="Several cameras, one sample per key frame and camera, ids "
@@ -388,7 +287,7 @@ def nuscenes(root, out_dir, nuscenes_version, camera, sensor, sweeps, resize, cr
 @icp_min_range_option
 @resize_to_option
 @splits_option(dataset="kitti")
-@_split_file_option(
+@split_file_option(
     help="Your own split lists, Eigen form (<date>/<drive> <frame> <l|r>); repeat per split."
 )
 @seed_option(help="Seed of the split assignment.")
@@ -397,10 +296,11 @@ def nuscenes(root, out_dir, nuscenes_version, camera, sensor, sweeps, resize, cr
                 "ids <drive>/<frame>).")  # fmt: skip
 @store_geometry_option
 @store_points_option
+@store_option
 @batch_options
 def kitti_raw(root, out_dir, beams, gt_method, filter_occluded, gt_neighbours, stereo_check,
               icp_min_range, resize_to, official_split, splits, split_files, seed, cameras,
-              store_geometry, store_points, batch, as_json):  # fmt: skip
+              store_geometry, store_points, store, batch, as_json):  # fmt: skip
     """KITTI raw drives to a dataset: image, N-beam projected LiDAR, LiDAR ground truth.
 
     ROOT is a drive, a date folder (all its drives) or a root of dates. Frames are keyed by
@@ -421,6 +321,7 @@ def kitti_raw(root, out_dir, beams, gt_method, filter_occluded, gt_neighbours, s
           --gt-method accumulated --icp-min-range 20
       sparsetools dataset kitti-raw /data/kitti_raw -o out/effis4 --beams 4 --split eigen \\
           --resize-to 640x192
+      sparsetools dataset kitti-raw /data/kitti_raw -o out/kitti16 --beams 16 --store reference
     """
     from ..pipeline.dataset.cameras import parse_cameras
     from ..pipeline.dataset.roots import build_kitti_raw_dataset
@@ -432,7 +333,8 @@ def kitti_raw(root, out_dir, beams, gt_method, filter_occluded, gt_neighbours, s
         filter_occluded=filter_occluded, gt_neighbours=gt_neighbours, stereo_check=stereo_check,
         icp_min_range=icp_min_range, resize_to=resize_to, split=splits,
         split_files=split_files or None, official_split=official_split, seed=seed,
-        cameras=rig or None, geometry=store_geometry, store_points=store_points, batch=batch,
+        cameras=rig or None, geometry=store_geometry, store_points=store_points, store=store,
+        batch=batch,
     )  # fmt: skip
     _summary(summary, as_json, out_dir)
 
@@ -457,8 +359,9 @@ def kitti_raw(root, out_dir, beams, gt_method, filter_occluded, gt_neighbours, s
     help="Build the 1,000-frame depth_selection/val_selection_cropped set instead (its own "
     "images and intrinsics).",
 )  # fmt: skip
+@store_option
 @batch_options
-def kitti_dc(root, out_dir, raw, sparse_name, gt_name, selection, batch, as_json):
+def kitti_dc(root, out_dir, raw, sparse_name, gt_name, selection, store, batch, as_json):
     """A KITTI depth-completion root to a dataset, split as the tree splits it (train / val).
 
     ROOT holds data_depth_velodyne/ and data_depth_annotated/ ({train,val}/<drive>/proj_depth/
@@ -478,7 +381,7 @@ def kitti_dc(root, out_dir, raw, sparse_name, gt_name, selection, batch, as_json
         raise click.UsageError("--raw (the KITTI raw images) is needed, or use --selection")
     summary = build_kitti_dc_dataset(
         root, out_dir, raw=raw, sparse_name=sparse_name, gt_name=gt_name, selection=selection,
-        batch=batch,
+        store=store, batch=batch,
     )  # fmt: skip
     _summary(summary, as_json, out_dir)
 
@@ -504,7 +407,7 @@ def kitti_dc(root, out_dir, raw, sparse_name, gt_name, selection, batch, as_json
     help="A depth-completion tree whose train/val folders give each drive's split.",
 )  # fmt: skip
 @split_option("default_split", help="Split of drives --split-from lacks.")
-@_split_file_option(
+@split_file_option(
     help="--layout monodepth2-gt: the split's test_files.txt (<date>/<drive> <frame> [l|r] "
     "lines); one map per line, in its order."
 )
@@ -572,10 +475,14 @@ def _export_monodepth2_gt(root, out_dir, split_files, split_from, depth_value, b
 
 @dataset.command("info")
 @click.argument("dataset_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@root_option
 @json_option(help="Print the information as JSON.")
 @quiet_debug_options
-def info(dataset_dir, as_json):
+def info(dataset_dir, roots, as_json):
     """Counts per split, image sizes, density statistics, file sizes, schema version.
+
+    Sizes count what is on disk in the dataset folder (staged sources in .sources/ too) and,
+    apart, the images a --store reference dataset keeps in place.
 
     \b
     Example:
@@ -583,7 +490,7 @@ def info(dataset_dir, as_json):
     """
     from ..pipeline.dataset import dataset_info
 
-    d = dataset_info(dataset_dir)
+    d = dataset_info(dataset_dir, roots=roots)
     click.echo(json.dumps(d.to_dict(), indent=1) if as_json else d.format())
 
 
@@ -592,23 +499,55 @@ def info(dataset_dir, as_json):
 @click.option("--no-hash", is_flag=True, help="Skip the SHA-256 comparison (faster).")
 @threads_option(help="Threads reading and decoding files.")
 @deprecated("--workers", "--threads", command="dataset verify", dest="threads", metavar="N")
+@root_option
 @json_option(help="Print the report as JSON.")
 @quiet_debug_options
-def verify(dataset_dir, no_hash, threads, as_json):
+def verify(dataset_dir, no_hash, threads, roots, as_json):
     """Check every file: present, decodable, sizes consistent, SHA-256 matching the manifest.
 
+    A --store reference dataset's images are checked where they are (--root NAME=PATH when
+    the tree moved): missing, or changed since the build (size, modification time, hash).
     Exits with status 1 and lists the problems when any is found.
 
     \b
-    Example:
+    Examples:
       sparsetools dataset verify out/ds --threads 4
+      sparsetools dataset verify out/kitti4_ref --root kitti=/mnt/new/kitti_raw
     """
     from ..pipeline.dataset import verify_dataset
 
-    report = verify_dataset(dataset_dir, check_hashes=not no_hash, threads=threads)
+    report = verify_dataset(dataset_dir, check_hashes=not no_hash, threads=threads, roots=roots)
     click.echo(json.dumps(report.to_dict(), indent=1) if as_json else report.format())
     if not report.ok:
         raise click.ClickException(f"{len(report.problems)} problem(s) found in {dataset_dir}")
+
+
+@dataset.command("pack")
+@click.argument("dataset_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@output_dir_option(
+    help="The packed dataset (created; refused if it holds what pack did not write)."
+)
+@root_option
+@batch_options
+def pack(dataset_dir, out_dir, roots, batch, as_json):
+    """Make a self-contained copy of a dataset whose images are referenced in place.
+
+    Every referenced image is copied in (checked against the size and SHA-256 the manifest
+    recorded; a changed one is refused), with the sample's other files and the Parquet parts;
+    the manifest is rewritten as --store copy writes it. --root NAME=PATH when a tree moved.
+
+    \b
+    Examples:
+      sparsetools dataset kitti-raw /data/kitti_raw -o out/kitti4 --beams 4 --store reference
+      sparsetools dataset pack out/kitti4 -o out/kitti4_packed
+      sparsetools dataset pack out/kitti4 -o out/kitti4_packed --root kitti=/mnt/kitti_raw
+    """
+    from ..pipeline.core import run_job
+    from ..pipeline.dataset.pack import pack_plan
+
+    job, frames, inputs = pack_plan(dataset_dir, roots=roots)
+    summary = run_job(job, frames, out_dir, batch=batch, inputs=inputs, desc="pack")
+    emit_summary(summary, as_json=as_json, title=f"packed dataset written to {out_dir}")
 
 
 @dataset.command("report")

@@ -116,6 +116,21 @@ def pair(*, integer: bool = False, single: bool = False, low: float | None = Non
     return parse
 
 
+def named_paths(ctx, param, value):
+    """Repeated ``NAME=PATH`` -> {name: Path} (``--root kitti=/data/kitti``)."""
+    from pathlib import Path
+
+    out = {}
+    for item in value or ():
+        name, sep, path = item.partition("=")
+        if not sep or not name or not path:
+            raise click.BadParameter(f"expected NAME=PATH, got {item!r}")
+        if name in out:
+            raise click.BadParameter(f"{name!r} given twice")
+        out[name] = Path(path)
+    return out
+
+
 def int_list(ctx, param, value):
     """Callback: ``5,7,9,11`` (or several values) -> a tuple of ints (None when not given)."""
     from ..validate import parse_int_list

@@ -4,7 +4,9 @@ Layout (METHODS.md section 6; docs/dataset.md has the full schema table)::
 
     DATASET/
       manifest.parquet          one row per sample (schema: MANIFEST_SCHEMA)
-      rgb/<id>.png|.jpg         camera images, copied byte for byte (or hard-linked)
+      rgb/<id>.png|.jpg         camera images, copied byte for byte (or reflinked); with
+                                --store reference not here: the manifest names each by a
+                                root, a path in it and its identity (schema version 3)
       sparse/<id>.png           sparse depth, KITTI uint16 PNG (--sparse-format png|both)
       sparse/part-00000.parquet sparse depth as points, one row per frame (parquet|both)
       gt/<id>.png|.npy          ground-truth depth (optional)
@@ -39,7 +41,7 @@ import pyarrow.parquet as pq
 
 from ..errors import FormatError
 from .atomic import atomic_path
-from .image import decode_depth_png, read_depth_png
+from .dataset_refs import check_root_name, reference_unchanged, resolve_reference
 
 __all__ = [
     "FULL_SCHEMA",
@@ -51,28 +53,37 @@ __all__ = [
     "PART_SCHEMA",
     "POINTS_DIR",
     "POINTS_SCHEMA",
+    "REFERENCE_COLUMNS",
     "SCHEMA_VERSION",
     "SPARSE_DIR",
     "ManifestRow",
     "brief_error",
     "bytes_sha256",
     "check_relative_path",
-    "decode_depth_bytes",
+    "check_root_name",
     "depth_to_points",
     "file_sha256",
     "points_sha256",
     "points_to_depth",
-    "read_confidence_file",
-    "read_depth_file",
     "read_manifest",
+    "reference_unchanged",
     "resolve_in_dataset",
+    "resolve_reference",
     "write_manifest",
 ]
 
 #: Version of the manifest / part layout. Bump on any incompatible change.
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 #: Columns added in schema version 2 (null when a version-1 manifest is read).
 V2_COLUMNS = ("frame_index", "timestamp", "T_world_cam")
+#: Columns added in schema version 3: the camera image referenced in place (``--store
+#: reference``) by a named root, a path relative to it (``rgb_path``) and its identity.
+#: Written only when a row references its image: a dataset that references nothing is
+#: written as a version-2 manifest, exactly as before (older readers read it); read, a
+#: manifest without them has them null.
+REFERENCE_COLUMNS = ("rgb_root", "rgb_size", "rgb_mtime_ns")
+#: Schema version of a manifest without :data:`REFERENCE_COLUMNS`.
+BASE_SCHEMA_VERSION = 2
 MANIFEST_NAME = "manifest.parquet"
 SPARSE_DIR = "sparse"
 METADATA_VERSION_KEY = b"sparsetools.schema_version"
@@ -94,6 +105,10 @@ MANIFEST_SCHEMA = pa.schema(
         pa.field("cx", pa.float64()),
         pa.field("cy", pa.float64()),
         pa.field("rgb_path", pa.string(), nullable=False),
+        # version 3: the image referenced in place (REFERENCE_COLUMNS)
+        pa.field("rgb_root", pa.string()),
+        pa.field("rgb_size", pa.int64()),
+        pa.field("rgb_mtime_ns", pa.int64()),
         pa.field("sparse_path", pa.string()),
         pa.field("sparse_parquet", pa.string()),
         pa.field("sparse_row", pa.int32()),
@@ -155,6 +170,16 @@ class ManifestRow:
     fx, fy, cx, cy : float, optional
         Intrinsics, pixels.
     rgb_path : str
+        Relative to the dataset; or, with ``rgb_root``, to that root.
+    rgb_root : str, optional
+        The image is referenced in place (``--store reference``, schema version 3): the name
+        of its root (``rgb``, ``kitti``), whose path the manifest's build information
+        records (``roots``) and :class:`~sparsetools.io.dataset_reader.DatasetReader` can be
+        given again. None: the image is in the dataset.
+    rgb_size, rgb_mtime_ns : int, optional
+        The referenced image's identity when it was built: bytes and modification time (ns);
+        with ``rgb_sha256`` for files up to :data:`sparsetools.io.provenance.HASH_LIMIT`
+        bytes (:func:`reference_unchanged`).
     sparse_path : str, optional
         Sparse depth as a KITTI uint16 PNG.
     sparse_parquet : str, optional
@@ -211,6 +236,9 @@ class ManifestRow:
     cx: float | None
     cy: float | None
     rgb_path: str
+    rgb_root: str | None
+    rgb_size: int | None
+    rgb_mtime_ns: int | None
     sparse_path: str | None
     sparse_parquet: str | None
     sparse_row: int | None
@@ -442,87 +470,6 @@ def points_to_depth(
     return out
 
 
-# -- depth-like files ------------------------------------------------------------------------------
-def _load_npy(data: bytes, source: str) -> np.ndarray:
-    from .npy import load_npy
-
-    arr = load_npy(data, source=source, invalid="not a readable .npy array")
-    if not isinstance(arr, np.ndarray):
-        raise FormatError(f"{source}: expected one array in the .npy file")
-    if arr.ndim == 3 and arr.shape[2] == 1:
-        arr = arr[:, :, 0]
-    if arr.ndim != 2:
-        raise FormatError(f"{source}: expected an (H, W) array, got shape {arr.shape}")
-    if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
-        raise FormatError(f"{source}: expected a numeric array, got {arr.dtype}")
-    return arr
-
-
-def decode_depth_bytes(data: bytes, suffix: str, *, source: str = "depth") -> np.ndarray:
-    """Decode a depth file's bytes: KITTI uint16 PNG or ``.npy`` (metres) by ``suffix``.
-
-    Returns (H, W) float32 metres. Values of a ``.npy`` that are not valid depths
-    (non-finite or <= 0) become 0 (no measurement).
-    """
-    suffix = suffix.lower()
-    if suffix == ".png":
-        return decode_depth_png(data, source=source)
-    if suffix == ".npy":
-        with np.errstate(over="ignore", invalid="ignore"):  # beyond float32: Inf, invalid
-            arr = _load_npy(data, source).astype(np.float32, copy=False)
-        with np.errstate(invalid="ignore"):
-            bad = ~(np.isfinite(arr) & (arr > 0))
-        if bad.any():
-            arr = np.where(bad, np.float32(0), arr)
-        return arr
-    raise FormatError(f"{source}: unknown depth format '{suffix}' (expected .png or .npy)")
-
-
-def read_depth_file(path: str | os.PathLike) -> np.ndarray:
-    """Read a depth map: KITTI uint16 PNG (value / 256) or ``.npy`` float metres.
-
-    Returns
-    -------
-    (H, W) float32
-        Metres, 0 = no measurement.
-    """
-    path = Path(path)
-    if path.suffix.lower() == ".png":
-        return read_depth_png(path)
-    from .npy import read_map_bytes
-
-    data = read_map_bytes(path, what="depth map")
-    return decode_depth_bytes(data, path.suffix, source=str(path))
-
-
-def decode_confidence_bytes(data: bytes, suffix: str, *, source: str = "confidence") -> np.ndarray:
-    """Decode a confidence map: PNG (uint16 / 65535 or uint8 / 255) or ``.npy`` as float32."""
-    suffix = suffix.lower()
-    if suffix == ".npy":
-        with np.errstate(over="ignore", invalid="ignore"):
-            return _load_npy(data, source).astype(np.float32, copy=False)
-    if suffix == ".png":
-        from .image import decode_image_bytes
-
-        img = decode_image_bytes(data, source=source, what="confidence PNG")
-        if img.ndim != 2:
-            raise FormatError(f"{source}: a confidence PNG must be single-channel")
-        scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(img.dtype)
-        if scale is None:
-            raise FormatError(f"{source}: {img.dtype} PNG, expected uint8 or uint16 confidence")
-        return img.astype(np.float32) / np.float32(scale)
-    raise FormatError(f"{source}: unknown confidence format '{suffix}' (expected .png or .npy)")
-
-
-def read_confidence_file(path: str | os.PathLike) -> np.ndarray:
-    """Read a confidence map (see :func:`decode_confidence_bytes`): (H, W) float32 in [0, 1]."""
-    from .npy import read_map_bytes
-
-    path = Path(path)
-    data = read_map_bytes(path, what="confidence map")
-    return decode_confidence_bytes(data, path.suffix, source=str(path))
-
-
 # -- manifest and parts --------------------------------------------------------------------------
 def write_manifest(path: str | os.PathLike, table: pa.Table, *, info: dict | None = None) -> None:
     """Write a manifest table atomically, with the schema version in the key-value metadata.
@@ -542,8 +489,16 @@ def write_manifest(path: str | os.PathLike, table: pa.Table, *, info: dict | Non
         for rel in table.column(col).to_pylist():
             if rel is not None:
                 check_relative_path(rel, what=col)
+    for name in table.column("rgb_root").to_pylist():
+        if name is not None:
+            check_root_name(name, what="rgb_root")
+    version = SCHEMA_VERSION
+    if table.column("rgb_root").null_count == table.num_rows:
+        # Nothing referenced: the version-2 manifest of before, column for column.
+        table = table.drop_columns(list(REFERENCE_COLUMNS))
+        version = BASE_SCHEMA_VERSION
     meta = {
-        METADATA_VERSION_KEY: str(SCHEMA_VERSION).encode(),
+        METADATA_VERSION_KEY: str(version).encode(),
         METADATA_INFO_KEY: json.dumps(info or {}, sort_keys=True).encode(),
     }
     table = table.replace_schema_metadata(meta)
@@ -587,8 +542,9 @@ def read_manifest(path: str | os.PathLike) -> tuple[pa.Table, dict]:
             f"{path}: schema version {version} was written by a newer sparsetools "
             f"(this one reads up to {SCHEMA_VERSION})"
         )
-    for name in V2_COLUMNS:
-        if version < 2 and name not in table.column_names:
+    added = [*(V2_COLUMNS if version < 2 else ()), *REFERENCE_COLUMNS]
+    for name in added:
+        if name not in table.column_names:
             typ = MANIFEST_SCHEMA.field(name).type
             table = table.append_column(name, pa.nulls(table.num_rows, type=typ))
     for f in OPTIONAL_SCHEMA:  # optional columns: absent when no row has a value
@@ -624,6 +580,14 @@ def read_manifest(path: str | os.PathLike) -> tuple[pa.Table, dict]:
         for rel in table.column(col).to_pylist():
             if rel is not None:
                 check_relative_path(rel, what=f"{path.name} column {col}")
+    for name in table.column("rgb_root").to_pylist():
+        if name is not None:
+            check_root_name(name, what=f"{path.name} column rgb_root")
+    roots = info.get("roots", {})
+    if not isinstance(roots, dict) or not all(
+        isinstance(k, str) and isinstance(v, str) for k, v in roots.items()
+    ):
+        raise FormatError(f"{path}: corrupt dataset metadata (roots is not a name -> path map)")
     return table, info
 
 
@@ -649,3 +613,10 @@ def _check_manifest_values(table: pa.Table, path: Path) -> None:
         raise FormatError(f"{path}: a sample refers to a sparse part without a valid sparse_row")
     if (table.column("n_sparse").to_numpy() < 0).any():
         raise FormatError(f"{path}: a sample has a negative n_sparse")
+    ref = table.column("rgb_root").is_valid().to_numpy(zero_copy_only=False)
+    for col in ("rgb_size", "rgb_mtime_ns"):
+        c = table.column(col)
+        if (ref & ~c.is_valid().to_numpy(zero_copy_only=False)).any():
+            raise FormatError(f"{path}: a referenced image (rgb_root) has no {col}")
+    if (table.column("rgb_size").fill_null(0).to_numpy() < 0).any():
+        raise FormatError(f"{path}: a sample has a negative rgb_size")

@@ -8,7 +8,7 @@ from __future__ import annotations
 import bisect
 import os
 from collections import OrderedDict
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -23,15 +23,56 @@ from .dataset import (
     brief_error,
     depth_to_points,
     points_to_depth,
-    read_confidence_file,
-    read_depth_file,
     read_manifest,
     resolve_in_dataset,
+    resolve_reference,
 )
 from .dataset_parts import part_rows
+from .depth_files import read_confidence_file, read_depth_file
 from .image import read_depth_png, read_image
 
-__all__ = ["DatasetReader"]
+__all__ = ["DatasetReader", "resolve_rgb", "sample_roots"]
+
+
+def sample_roots(info: dict, given: Mapping[str, str | os.PathLike] | None) -> dict[str, Path]:
+    """The roots of a dataset's referenced files: those its manifest recorded at build time
+    (``info["roots"]``), overridden by ``given`` (the tree moved)."""
+    from .dataset import check_root_name
+
+    roots = {k: Path(v) for k, v in (info.get("roots") or {}).items()}
+    for name, path in (given or {}).items():
+        roots[check_root_name(name, what="roots")] = Path(path)
+    return roots
+
+
+def resolve_rgb(dataset: Path, row: ManifestRow, roots: Mapping[str, Path]) -> Path:
+    """The camera image of a row: in the dataset, or referenced in place (``rgb_root``).
+
+    Raises
+    ------
+    FormatError
+        One line naming the sample and the root option: the root is unknown or not where it
+        was, the file is missing, or its reference would leave the root.
+    """
+    if row.rgb_root is None:
+        return resolve_in_dataset(dataset, row.rgb_path, what="rgb_path")
+    name = row.rgb_root
+    hint = f"give its place: roots={{'{name}': PATH}} (--root {name}=PATH)"
+    root = roots.get(name)
+    if root is None:
+        raise FormatError(
+            f"sample '{row.id}': its image is in root '{name}', which the manifest does not "
+            f"record; {hint}"
+        )
+    if not root.is_dir():
+        raise FormatError(f"sample '{row.id}': root '{name}' is not at {root} (moved?); {hint}")
+    path = resolve_reference(root, row.rgb_path, name=name, sample=row.id)
+    if not path.is_file():
+        raise FormatError(
+            f"sample '{row.id}': its image {row.rgb_path} is missing from root '{name}' "
+            f"({root}); {hint}"
+        )
+    return path
 
 
 class _PartCache:
@@ -87,6 +128,10 @@ class DatasetReader:
         The dataset folder (holding ``manifest.parquet``).
     split : str, optional
         Only the samples of this split (same as ``DatasetReader(path).split(name)``).
+    roots : mapping of str -> path-like, optional
+        Where the roots of referenced images are now (``{"kitti": "/new/place"}``),
+        overriding the paths the manifest recorded at build time (``--store reference``,
+        docs/dataset.md "Reference mode").
 
     Attributes
     ----------
@@ -95,6 +140,8 @@ class DatasetReader:
         The manifest rows of this reader (of its split only, when one is chosen).
     info : dict
         ``schema_version`` and the build information from the manifest metadata.
+    roots : dict of str -> Path
+        The roots referenced images are read from.
 
     Notes
     -----
@@ -108,9 +155,16 @@ class DatasetReader:
     >>> s["rgb"].shape, s["sparse"].dtype, s["intrinsics"]      # doctest: +SKIP
     """
 
-    def __init__(self, path: str | os.PathLike, *, split: str | None = None):
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        *,
+        split: str | None = None,
+        roots: Mapping[str, str | os.PathLike] | None = None,
+    ):
         self.root = Path(path)
         table, info = read_manifest(self.root / MANIFEST_NAME)
+        self.roots = sample_roots(info, roots)
         self._init(table, info, split)
 
     def _init(self, table: pa.Table, info: dict, split: str | None) -> None:
@@ -175,6 +229,7 @@ class DatasetReader:
         """A reader over the samples of split ``name`` only."""
         view = object.__new__(DatasetReader)
         view.root = self.root
+        view.roots = self.roots
         view._init(self._all, self.info, name)
         return view
 
@@ -192,6 +247,11 @@ class DatasetReader:
     def path(self, rel: str, *, what: str = "path") -> Path:
         """Absolute path of a manifest path, refusing anything outside the dataset."""
         return resolve_in_dataset(self.root, rel, what=what)
+
+    def rgb_path(self, key: int | str) -> Path:
+        """The camera image file of a sample: in the dataset, or where its reference points
+        (:func:`resolve_rgb`)."""
+        return resolve_rgb(self.root, self.row(key), self.roots)
 
     # -- data
     def sparse_points(self, key: int | str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -249,7 +309,7 @@ class DatasetReader:
             and ``baseline_m`` (float, metres); see :meth:`geometry`.
         """
         r = self.row(key)
-        rgb = self._checked(read_image(self.path(r.rgb_path, what="rgb_path")), r, "rgb")
+        rgb = self._checked(read_image(resolve_rgb(self.root, r, self.roots)), r, "rgb")
         if r.sparse_parquet is not None:
             u, v, d = self.sparse_points(key)
             sparse = points_to_depth(u, v, d, r.height, r.width)

@@ -300,7 +300,7 @@ class DefocusJob(BatchJob[DefocusInput]):
         }
 
     def __call__(self, task: FrameTask[DefocusInput]) -> DefocusStats:
-        from ..io.dataset import read_depth_file
+        from ..io.depth_files import read_depth_file
         from ..io.image import read_image, write_image
         from ..ops.defocus import defocus
         from ..random import frame_rng

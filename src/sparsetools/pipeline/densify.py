@@ -107,7 +107,7 @@ class DensifyJob(BatchJob[DensifyInput]):
         return {"fmt": "--format", "max_depth": "--inversion-offset"}
 
     def __call__(self, task: FrameTask[DensifyInput]) -> DensifyStats:
-        from ..io.dataset import read_depth_file
+        from ..io.depth_files import read_depth_file
         from ..io.image import write_depth_png
         from ..ops.densify import densify
 

@@ -58,7 +58,7 @@ def depth_stats_files(
         averaged over frames (min / max: over all frames) plus ``frames`` and
         ``total_points``; ``unmatched``: maps without a reference (left out).
     """
-    from ..io.dataset import read_depth_file
+    from ..io.depth_files import read_depth_file
     from ..io.sources import match_keys
     from ..ops.intrinsic import intrinsic_error
     from ..ops.stats import depth_stats

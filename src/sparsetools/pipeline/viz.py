@@ -76,7 +76,7 @@ def render_viz(
         An up-to-date picture (same inputs, same settings) is not drawn again.
     size : (width, height) or None
     """
-    from ..io.dataset import read_depth_file
+    from ..io.depth_files import read_depth_file
     from ..io.image import read_image, write_image
     from ..ops.viz import depth_panels
 
@@ -328,7 +328,7 @@ def _dataset_frames(root: Path, split: str | None, frame_range: str):
     frames = []
     for i in range(len(reader)):
         r = reader.row(i)
-        files = [root / MANIFEST_NAME, reader.path(r.rgb_path, what="rgb_path")]
+        files = [root / MANIFEST_NAME, reader.rgb_path(i)]  # in the dataset, or referenced
         for rel, what in ((r.sparse_parquet, "sparse_parquet"), (r.sparse_path, "sparse_path"),
                           (r.gt_path, "gt_path")):  # fmt: skip
             if rel is not None:
@@ -358,7 +358,7 @@ class ManyVizInput:
 
 def _load(job, frame: VizFrame, reader):
     """(image or None, list of depth maps) of one frame."""
-    from ..io.dataset import read_depth_file
+    from ..io.depth_files import read_depth_file
     from ..io.image import read_image
 
     if frame.sample is not None:
@@ -614,6 +614,6 @@ def _frame_shape(job, frame: VizFrame) -> tuple[int, int]:
     if frame.sample is not None:
         r = _reader(job).row(frame.sample)
         return int(r.height), int(r.width)
-    from ..io.dataset import read_depth_file
+    from ..io.depth_files import read_depth_file
 
     return read_depth_file(frame.depths[0]).shape[:2]

@@ -76,8 +76,9 @@ def check_dataset_inputs(input_mode: str, reader, *, split: str, checkpoint) -> 
 
 
 def _sample_sources(reader, row) -> tuple[str, ...]:
-    rels = [row.rgb_path, row.sparse_path, row.sparse_parquet, row.confidence_path]
-    return tuple(str(reader.path(r)) for r in rels if r is not None)
+    rels = [row.sparse_path, row.sparse_parquet, row.confidence_path]
+    rgb = str(reader.rgb_path(row.id))  # in the dataset, or referenced
+    return (rgb, *(str(reader.path(r)) for r in rels if r is not None))
 
 
 class Predictor:

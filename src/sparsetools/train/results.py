@@ -268,7 +268,7 @@ def evaluate_folders(
         A missing prediction (the first names on both sides), unreadable files, a prediction
         of another size than its ground truth, or nothing but holes to evaluate.
     """
-    from ..io.dataset import read_depth_file
+    from ..io.depth_files import read_depth_file
 
     if fill not in FILLS:
         raise ParameterError(f"unknown fill {fill!r}; choose one of {', '.join(FILLS)}")

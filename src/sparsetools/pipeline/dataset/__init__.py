@@ -6,12 +6,14 @@
 - :mod:`.build`: finding and matching the inputs, the job (:class:`DatasetJob`);
 - :mod:`.staging`: one frame's work and its staging record;
 - :mod:`.merge`: merging the staged frames into the manifest;
-- :mod:`.inspect`: ``info`` and ``verify``.
+- :mod:`.inspect`: ``info`` and ``verify`` (:mod:`.references`: of images referenced in place);
+- :mod:`.pack`: ``pack``, a ``--store reference`` dataset made self-contained.
 """
 
 from .build import BuildInputs, DatasetJob, build_dataset, find_build_inputs
 from .inspect import DatasetInfo, VerifyReport, dataset_info, verify_dataset
 from .official_splits import OFFICIAL_SPLITS, official_split_lists, official_split_names
+from .pack import pack_dataset
 from .settings import SPARSE_FORMATS, BuildSettings
 from .splits import (
     DEFAULT_SPLIT,
@@ -53,6 +55,7 @@ __all__ = [
     "match_split_lines",
     "official_split_lists",
     "official_split_names",
+    "pack_dataset",
     "parse_split_fractions",
     "read_record",
     "read_split_file",

@@ -25,7 +25,7 @@ from pathlib import Path
 from ..._version import __version__
 from ...errors import FormatError, OutputError, ParameterError
 from ...io.atomic import TMP_PREFIX
-from ...io.dataset import MANIFEST_NAME, SPARSE_DIR, read_manifest
+from ...io.dataset import MANIFEST_NAME, SPARSE_DIR, check_root_name, read_manifest
 from ...io.points_table import read_points_table
 from ...io.provenance import RECORD_DIR
 from ...io.sources import FrameKey, index_input, is_shared_calibration, match_keys
@@ -190,6 +190,9 @@ class BuildInputs:
         list (left out).
     seconds : float
         Time spent indexing and matching.
+    rgb_root : Path, optional
+        The folder of the camera images (``--rgb``, or the folder holding that file): the
+        root ``rgb`` of ``--store reference``.
     """
 
     frames: list[DatasetFrameInput]
@@ -197,6 +200,7 @@ class BuildInputs:
     unmatched: dict[str, int]
     split_lists: SplitListsReport | None = None
     seconds: float = 0.0
+    rgb_root: Path | None = None
 
 
 def find_build_inputs(
@@ -268,7 +272,10 @@ def find_build_inputs(
     given = {"rgb": rgb, "sparse": sparse, "gt": gt, "confidence": confidence, "calib": calib}
     frames = [_frame_input(k, sequence[k], split_of.get(k), inputs, given) for k in keys]
     roots = tuple(Path(p) for p in (rgb, sparse, gt, confidence) if p is not None)
-    return BuildInputs(frames, roots, unmatched, split_lists, time.perf_counter() - t_start)
+    rgb_root = Path(rgb).absolute()
+    rgb_root = rgb_root if rgb_root.is_dir() else rgb_root.parent
+    return BuildInputs(frames, roots, unmatched, split_lists, time.perf_counter() - t_start,
+                       rgb_root=rgb_root)  # fmt: skip
 
 
 def _frame_input(
@@ -347,9 +354,16 @@ class DatasetJob(BatchJob[DatasetFrameInput]):
     plan_seconds: float = 0.0
     frames_per_part: int = 1000
     param_options: Mapping[str, str] = field(default_factory=dict)
+    rgb_root: tuple[str, str] | None = None
 
     def __post_init__(self) -> None:
         check_int_range(self.frames_per_part, "frames_per_part", low=1)
+        if self.settings.store == "reference":
+            if self.rgb_root is None:
+                raise ParameterError("--store reference needs the root of the camera images")
+            name, path = self.rgb_root
+            check_root_name(name, what="root")
+            object.__setattr__(self, "rgb_root", (name, os.path.abspath(path)))
 
     @classmethod
     def for_inputs(
@@ -359,21 +373,29 @@ class DatasetJob(BatchJob[DatasetFrameInput]):
         *,
         frames_per_part: int = 1000,
         param_options: Mapping[str, str] | None = None,
+        rgb_root: tuple[str, str | os.PathLike] | None = None,
     ) -> DatasetJob:
-        """The job building the frames ``found``."""
+        """The job building the frames ``found``; ``rgb_root``: (name, folder) of the camera
+        images, the root their references name with ``settings.store == "reference"``
+        (default ``("rgb", found.rgb_root)``: the ``--rgb`` folder)."""
+        if rgb_root is None and found.rgb_root is not None:
+            rgb_root = ("rgb", found.rgb_root)
+        root = None if rgb_root is None else (rgb_root[0], os.fspath(rgb_root[1]))
         return cls(settings, found.unmatched, found.split_lists, found.seconds,
                    frames_per_part=frames_per_part,
-                   param_options=dict(param_options or {}))  # fmt: skip
+                   param_options=dict(param_options or {}),
+                   rgb_root=root if settings.store == "reference" else None)  # fmt: skip
 
     def option_names(self) -> dict:
         names = dict(option_names(self.settings))
+        names["link"] = "--store link"  # recorded as 0.2 / 0.3 did (BuildSettings.record_store)
         names.update({f"params.{k}": v for k, v in self.param_options.items()})
         return names
 
     def record(self) -> dict:
         # Split files are recorded as sparsetools 0.2 wrote them (str of each item), so that
         # its datasets resume.
-        record = settings_dict(self.settings)
+        record = self.settings.record_store(settings_dict(self.settings))
         if self.settings.official_split is None:  # as 0.2 / 0.3 recorded it
             del record["official_split"]
         if self.settings.split_files:
@@ -382,10 +404,10 @@ class DatasetJob(BatchJob[DatasetFrameInput]):
 
     def tasks(self, frames: list[DatasetFrameInput], out_dir: Path) -> list[FrameTask]:
         _check_dataset_folder(out_dir)
-        fmt = self.settings.sparse_format
+        fmt, store = self.settings.sparse_format, self.settings.store
         tasks = [
             FrameTask(x.id, x, {role: out_dir / rel for role, rel in sample_files(
-                x, fmt, store_points=self.settings.store_points).items()}, x.sources)
+                x, fmt, store, store_points=self.settings.store_points).items()}, x.sources)
             for x in frames
         ]  # fmt: skip
         _check_inputs_outside(out_dir, tasks)
@@ -410,7 +432,7 @@ class DatasetJob(BatchJob[DatasetFrameInput]):
         return complete
 
     def __call__(self, task: FrameTask[DatasetFrameInput]) -> DatasetFrameStats:
-        return stage_frame(task.inputs, task.outputs, self.settings)
+        return stage_frame(task.inputs, task.outputs, self.settings, self.rgb_root)
 
     def finish(self, summary: RunSummary, tasks: list[FrameTask], out_dir: Path) -> dict:
         """Merge the staged frames into the manifest and parts (with ``--overwrite``, rows of
@@ -422,6 +444,8 @@ class DatasetJob(BatchJob[DatasetFrameInput]):
             split.update(self.split_lists.manifest_dict())
         info = {"created_by": f"sparsetools {__version__}", "sparse_format": s.sparse_format,
                 "split": split}  # fmt: skip
+        if self.rgb_root is not None:  # --store reference: where each root was at build time
+            info["roots"] = {self.rgb_root[0]: self.rgb_root[1]}
         # split files and the tree give each frame its split; fractions split by sequence
         given = None if s.split is not None else {t.inputs.id: t.inputs.split for t in tasks}
         merged = merge_staged(
@@ -465,6 +489,7 @@ def build_dataset(
     official_split: str | None = None,
     seed: int = 0,
     sparse_format: str = "both",
+    store: str = "copy",
     link: bool = False,
     source: str = "lidar",
     params: dict | None = None,
@@ -478,6 +503,7 @@ def build_dataset(
     geometry: bool = False,
     store_points: bool = False,
     frame_fields: Mapping[str, Mapping[str, object]] | None = None,
+    rgb_root_name: str = "rgb",
 ) -> RunSummary:
     """Build (or extend) a dataset folder from per-frame input files.
 
@@ -521,9 +547,14 @@ def build_dataset(
     seed : int
         Split seed.
     sparse_format : {"png", "parquet", "both"}
+    store : {"copy", "link", "reference"}
+        ``copy`` the input files into the dataset; ``link``: reflink them where the file
+        system can (copy-on-write: the dataset never shares an inode with an input), else
+        copy them; ``reference``: leave the camera images where they are, recorded in the
+        manifest by the root ``rgb_root_name`` (the ``rgb`` folder), their path in it and
+        their identity (docs/dataset.md, "Reference mode").
     link : bool
-        Reflink the input files into the dataset where the file system can (copy-on-write:
-        the dataset never shares an inode with an input), else copy them.
+        Deprecated: ``store="link"``.
     source : str
         Sensor that produced the sparse depth (``lidar``, ``lidar-4beam``, ``radar``...).
     params : dict, optional
@@ -552,6 +583,8 @@ def build_dataset(
         ``cloud``, given by ``frame_fields``).
     frame_fields : mapping of field -> (mapping of sample id -> value), optional
         Per-frame fields of :class:`~.staging.DatasetFrameInput` a route knows (``cloud``).
+    rgb_root_name : str
+        Name of the ``rgb`` folder as a root of ``--store reference`` (the routes: ``kitti``).
 
     Returns
     -------
@@ -563,10 +596,14 @@ def build_dataset(
         links, ``t_stage``: staging records) and ``t_finalize`` (Parquet parts and manifest).
     """
     batch = batch or Batch()
+    if link:
+        if store not in ("copy", "link"):
+            raise ParameterError(f"link=True is store='link': not with store={store!r}")
+        store = "link"
     settings = BuildSettings.with_splits(
         split, split_files, official_split=official_split, sparse_format=sparse_format,
         sparse_name=sparse_name,
-        gt_name=gt_name, link=link, source=source, params=params, sequence_from=sequence_from,
+        gt_name=gt_name, store=store, source=source, params=params, sequence_from=sequence_from,
         seed=seed, geometry=geometry, store_points=store_points,
     )  # fmt: skip
     found = find_build_inputs(
@@ -584,7 +621,8 @@ def build_dataset(
             for x in found.frames
         ])  # fmt: skip
     job = DatasetJob.for_inputs(settings, found, frames_per_part=frames_per_part,
-                                param_options=param_options)  # fmt: skip
+                                param_options=param_options,
+                                rgb_root=(rgb_root_name, found.rgb_root))  # fmt: skip
     return run_job(job, found.frames, out_dir, batch=batch, inputs=found.roots, desc="dataset")
 
 

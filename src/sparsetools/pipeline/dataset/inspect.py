@@ -9,6 +9,7 @@ import os
 import stat
 import statistics
 from collections import Counter, defaultdict
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,15 +22,16 @@ from ...io.dataset import (
     ManifestRow,
     brief_error,
     bytes_sha256,
-    decode_confidence_bytes,
-    decode_depth_bytes,
     points_sha256,
     read_manifest,
     resolve_in_dataset,
 )
 from ...io.dataset_parts import part_rows, read_sparse_part
+from ...io.depth_files import decode_confidence_bytes, decode_depth_bytes
 from ...validate import check_int_range
 from .build import SOURCES_DIR
+from .references import decode_rgb as _decode_rgb
+from .references import verify_reference as _verify_reference
 from .staging import STAGING
 
 __all__ = ["DatasetInfo", "SplitCounts", "Spread", "VerifyReport", "dataset_info", "verify_dataset"]
@@ -101,6 +103,11 @@ class DatasetInfo:
         Samples per ground-truth method (``generation_params["sample"]["gt_method"]`` of the
         one-command routes: ``scan``, ``accumulated(...)``, ``sweeps(N)``...; ``unrecorded``
         for samples with ground truth that do not say), most common first.
+    referenced_files, referenced_bytes : int
+        Camera images referenced in place (``--store reference``) and their bytes, each file
+        once: on disk, but outside the dataset (not in ``total_bytes``).
+    missing_references : int
+        Referenced images not found (their root not given or moved, or the file gone).
     """
 
     dataset: str
@@ -122,6 +129,9 @@ class DatasetInfo:
     split_method: dict | None
     official_split: str | None = None
     gt_methods: dict[str, int] = dataclasses.field(default_factory=dict)
+    referenced_files: int = 0
+    referenced_bytes: int = 0
+    missing_references: int = 0
 
     def to_dict(self) -> dict:
         """The report as JSON values (``dataset info --json``)."""
@@ -167,7 +177,14 @@ class DatasetInfo:
                 )
             )
         sizes = ", ".join(f"{k} {_human(v)}" for k, v in self.bytes.items())
-        lines.append(("size", f"{_human(self.total_bytes)} ({sizes})"))
+        if self.referenced_files or self.missing_references:
+            lines.append(("size in the dataset", f"{_human(self.total_bytes)} ({sizes})"))
+            missing = (f", {self.missing_references} not found (run 'dataset verify')"
+                       if self.missing_references else "")  # fmt: skip
+            lines.append(("size referenced", f"{_human(self.referenced_bytes)} "
+                          f"({self.referenced_files} image(s) kept in place{missing})"))  # fmt: skip
+        else:
+            lines.append(("size", f"{_human(self.total_bytes)} ({sizes})"))
         if self.missing_files:
             lines.append(("missing files", f"{self.missing_files} (run 'dataset verify')"))
         width = max(len(k) for k, _ in lines)
@@ -213,11 +230,20 @@ _FILE_KINDS = (
 )
 
 
-def dataset_info(path: str | os.PathLike) -> DatasetInfo:
-    """Counts per split, image sizes, density statistics, file sizes and the schema version."""
+def dataset_info(
+    path: str | os.PathLike, *, roots: Mapping[str, str | os.PathLike] | None = None
+) -> DatasetInfo:
+    """Counts per split, image sizes, density statistics, file sizes and the schema version.
+
+    ``roots``: where the roots of referenced images are now (as
+    :class:`~sparsetools.io.dataset_reader.DatasetReader`'s); their bytes are counted apart.
+    """
+    from ...io.dataset_reader import resolve_rgb, sample_roots
+
     root = Path(path)
     table, info = read_manifest(root / MANIFEST_NAME)
     rows = ManifestRow.from_table(table)
+    where = sample_roots(info, roots)
     per_split: dict[str, SplitCounts] = {}
     for name in sorted({r.split for r in rows}, key=str):
         sub = [r for r in rows if r.split == name]
@@ -243,11 +269,25 @@ def dataset_info(path: str | os.PathLike) -> DatasetInfo:
             counted.add(os.path.realpath(p))
             bytes_by_kind[kind] += size
 
+    ref_seen: set[str] = set()
+    ref_bytes = ref_missing = 0
     for r in rows:
         for kind, col in _FILE_KINDS:
             rel = getattr(r, col)
-            if rel is not None:
-                count(kind, rel)
+            if rel is None:
+                continue
+            if col == "rgb_path" and r.rgb_root is not None:
+                try:
+                    p = os.path.realpath(resolve_rgb(root, r, where))
+                    size = os.stat(p).st_size
+                except (FormatError, OSError):
+                    ref_missing += 1
+                    continue
+                if p not in ref_seen:
+                    ref_seen.add(p)
+                    ref_bytes += size
+                continue
+            count(kind, rel)
     for rel in sorted({r.sparse_parquet for r in rows if r.sparse_parquet is not None}):
         count("sparse_parquet", rel)
     count("manifest", MANIFEST_NAME)
@@ -278,6 +318,9 @@ def dataset_info(path: str | os.PathLike) -> DatasetInfo:
         gt_methods=dict(
             Counter(_gt_method(r) for r in rows if r.gt_path is not None).most_common()
         ),
+        referenced_files=len(ref_seen),
+        referenced_bytes=ref_bytes,
+        missing_references=ref_missing,
     )
 
 
@@ -339,6 +382,11 @@ class VerifyReport:
     warnings : tuple of str
         Sequences in several splits, unreferenced part files, an unfinished build, inputs
         gone since the build.
+    references : int
+        Camera images referenced in place (``--store reference``).
+    references_missing, references_changed : int
+        Of them: not found (root unknown or moved, file gone), and changed since the build
+        (size, modification time or hash differ: each also a problem).
     """
 
     dataset: str
@@ -347,6 +395,9 @@ class VerifyReport:
     inputs_changed: int
     problems: tuple[str, ...]
     warnings: tuple[str, ...]
+    references: int = 0
+    references_missing: int = 0
+    references_changed: int = 0
 
     @property
     def ok(self) -> bool:
@@ -370,8 +421,9 @@ class VerifyReport:
 
 
 def _verify_row(
-    root: Path, r: ManifestRow, check_hashes: bool
-) -> tuple[list[str], np.ndarray | None]:
+    root: Path, r: ManifestRow, check_hashes: bool, roots: Mapping[str, Path] | None = None
+) -> tuple[list[str], np.ndarray | None, list[str], str | None]:
+    """(problems, the sparse PNG decoded, warnings, reference status or None)."""
     problems = []
     fid = r.id
     shape = (r.height, r.width)
@@ -412,18 +464,15 @@ def _verify_row(
             return None
         return arr
 
-    def rgb_decode(data, rel):
-        from ...io.image import decode_image_bytes
-
-        img = decode_image_bytes(data, source=rel)
-        if img.dtype != np.uint8:
-            raise FormatError("not an 8-bit image")
-        return img
-
     def depth_decode(data, rel):
         return decode_depth_bytes(data, Path(rel).suffix, source=rel)
 
-    check("rgb_path", r.rgb_sha256, rgb_decode)
+    warnings, status = [], None
+    if r.rgb_root is None:
+        check("rgb_path", r.rgb_sha256, _decode_rgb)
+    else:
+        probs, warnings, status = _verify_reference(root, r, check_hashes, roots or {})
+        problems.extend(probs)
     sparse_png = check("sparse_path", r.sparse_sha256, depth_decode)
     if sparse_png is not None and r.sparse_parquet is None:
         n = int(np.count_nonzero(sparse_png))
@@ -449,7 +498,7 @@ def _verify_row(
             problems.append(f"{fid}: density {r.density} does not match n_sparse / pixels")
     else:
         problems.append(f"{fid}: bad image size {r.width}x{r.height}")
-    return problems, sparse_png
+    return problems, sparse_png, warnings, status
 
 
 def _verify_part(
@@ -501,7 +550,11 @@ def _verify_part(
 
 
 def verify_dataset(
-    path: str | os.PathLike, *, check_hashes: bool = True, threads: int = 1
+    path: str | os.PathLike,
+    *,
+    check_hashes: bool = True,
+    threads: int = 1,
+    roots: Mapping[str, str | os.PathLike] | None = None,
 ) -> VerifyReport:
     """Check a dataset: every file present, decodable, of the manifest's size, hash matching.
 
@@ -513,6 +566,9 @@ def verify_dataset(
         Compare SHA-256 of every file (and of every frame's sparse points).
     threads : int
         Threads reading and decoding files (hashing and decoding release the GIL).
+    roots : mapping of str -> path-like, optional
+        Where the roots of referenced images are now (default: the paths the build
+        recorded); a referenced image missing or changed since the build is a problem.
 
     Returns
     -------
@@ -522,15 +578,18 @@ def verify_dataset(
     """
     from concurrent.futures import ThreadPoolExecutor
 
+    from ...io.dataset_reader import sample_roots
+
     threads = check_int_range(threads, "threads", low=1)
     root = Path(path)
     table, info = read_manifest(root / MANIFEST_NAME)
     rows = ManifestRow.from_table(table)
+    where = sample_roots(info, roots)
     problems: list[str] = []
     warnings: list[str] = []
 
     def one(r):
-        return _verify_row(root, r, check_hashes)
+        return _verify_row(root, r, check_hashes, where)
 
     if threads > 1:
         with ThreadPoolExecutor(max_workers=threads) as pool:
@@ -538,8 +597,12 @@ def verify_dataset(
     else:
         results = [one(r) for r in rows]
     pngs = {}
-    for r, (probs, png) in zip(rows, results, strict=True):
+    ref_status: Counter = Counter()
+    for r, (probs, png, warns, status) in zip(rows, results, strict=True):
         problems.extend(probs)
+        warnings.extend(warns)
+        if status is not None:
+            ref_status[status] += 1
         if png is not None:
             pngs[r.id] = png
     by_part: dict[str, list[ManifestRow]] = defaultdict(list)
@@ -565,7 +628,14 @@ def verify_dataset(
         warnings.append(
             f"{STAGING}/ holds frames of an unfinished build (rerun the build to add them)"
         )
-    changed, moved = _changed_inputs(root, {r.id for r in rows})
+    # A referenced image is checked above, where it is now: not again as an input of the build.
+    recorded = sample_roots(info, None)
+    referenced = {
+        os.path.realpath(Path(recorded[r.rgb_root], r.rgb_path))
+        for r in rows
+        if r.rgb_root is not None and r.rgb_root in recorded
+    }
+    changed, moved = _changed_inputs(root, {r.id for r in rows}, skip=referenced)
     for sid, path in changed:
         problems.append(
             f"{sid}: input {path} changed since the build (rerun 'dataset build' to update)"
@@ -582,12 +652,16 @@ def verify_dataset(
         inputs_changed=len(changed),
         problems=tuple(problems),
         warnings=tuple(warnings),
+        references=sum(ref_status.values()),
+        references_missing=ref_status["missing"],
+        references_changed=ref_status["changed"],
     )
 
 
-def _changed_inputs(root: Path, ids: set[str]) -> tuple[list, list]:
+def _changed_inputs(root: Path, ids: set[str], skip: set[str] = frozenset()) -> tuple[list, list]:
     """(sample, input) pairs whose input file differs from the build's record, and those
-    whose input is gone. A dataset without a record (older sparsetools) reports none."""
+    whose input is gone (inputs at the paths ``skip`` left out). A dataset without a record
+    (older sparsetools) reports none."""
     from ...io.provenance import file_identity, read_frame_records
 
     changed, gone = [], []
@@ -600,6 +674,8 @@ def _changed_inputs(root: Path, ids: set[str]) -> tuple[list, list]:
         if sid not in ids:
             continue
         for old in records[sid].inputs:
+            if old.path in skip:
+                continue
             now = cache.get(old.path)
             if now is None:
                 now = cache[old.path] = file_identity(old.path)

@@ -193,6 +193,13 @@ def merge_staged(
     rows = [_changed(r, changes.get(r.id)) for r in rows]
     merged_info = {**old_info, **info}
     merged_info.pop("schema_version", None)
+    # Roots of referenced images (--store reference): the newest path of each name that a
+    # row still names.
+    roots = {**old_info.get("roots", {}), **info.get("roots", {})}
+    used = {r.rgb_root for r in rows if r.rgb_root is not None}
+    merged_info.pop("roots", None)
+    if used:
+        merged_info["roots"] = {k: v for k, v in sorted(roots.items()) if k in used}
     write_manifest(manifest_path, ManifestRow.to_table(rows), info=merged_info)
 
     referenced = {r.sparse_parquet for r in rows if r.sparse_parquet is not None}

@@ -17,8 +17,9 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import FormatError
-from ...io.dataset import ManifestRow, read_depth_file
+from ...io.dataset import ManifestRow
 from ...io.dataset_reader import DatasetReader
+from ...io.depth_files import read_depth_file
 from ...io.image import read_image
 
 __all__ = [
@@ -104,7 +105,7 @@ def thumbnail(reader: DatasetReader, row: ManifestRow, *, max_depth: float) -> T
 
     from ...ops.colormap import overlay_depth
 
-    rgb = read_image(reader.path(row.rgb_path, what="rgb_path"))
+    rgb = read_image(reader.rgb_path(row.id))  # in the dataset, or referenced in place
     u, v, d = reader.sparse_points(row.id)
     h, w = rgb.shape[:2]
     s = min(1.0, THUMB_WIDTH / w)

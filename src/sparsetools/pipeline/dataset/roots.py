@@ -18,8 +18,14 @@ from pathlib import Path
 from ...errors import FormatError, ParameterError, UsageError
 from ..batch import Batch, RunSummary
 from ..core import run_job
-from .build import SOURCES_DIR, BuildSettings, DatasetJob, build_dataset, find_build_inputs
+from .build import BuildSettings, DatasetJob, build_dataset, find_build_inputs
 from .cameras import CameraInputs, camera_id, find_rig_inputs
+from .kitti_raw_stages import (
+    check_kitti_raw_gt,
+    kitti_raw_stages,
+    resized_images,
+    stage_dir,
+)
 from .official_splits import check_scene_list
 from .splits import split_list_of
 
@@ -50,10 +56,6 @@ KITTI_RAW_OPTIONS = {
 NUSCENES_CAMERAS = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_BACK",
                     "CAM_BACK_LEFT", "CAM_BACK_RIGHT")  # fmt: skip
 KITTI_DC_OPTIONS = {"route": "dataset", "sparse": "--sparse-name", "selection": "--selection"}
-
-
-def _stage(out: Path, name: str) -> Path:
-    return Path(out) / SOURCES_DIR / name
 
 
 def build_nuscenes_dataset(
@@ -248,29 +250,29 @@ def _nuscenes_stages(root, out: Path, *, camera, suffix, version, sensor, sweeps
         )
         for k, n in merged.items()
     }  # fmt: skip
-    images_dir = _stage(out, "images" + suffix)
+    images_dir = stage_dir(out, "images" + suffix)
     images = CameraImageJob(CameraImageSettings(resize=resize, crop=crop))
     run_job(images, frames, images_dir, batch=batch, desc="images")
     project = ProjectJob(ProjectSettings(resize=resize, crop=crop, camera=camera))
-    run_job(project, frames, _stage(out, "sparse" + suffix), batch=batch, inputs=[root])
+    run_job(project, frames, stage_dir(out, "sparse" + suffix), batch=batch, inputs=[root])
     gt, gt_totals = None, {}
     if gt_sensor is not None:
-        gt = _stage(out, ("gt_occluded" if filter_occluded else "gt") + suffix)
+        gt = stage_dir(out, ("gt_occluded" if filter_occluded else "gt") + suffix)
         gt_job = ProjectJob(replace(project.settings, filter_occluded=filter_occluded))
         done = run_job(gt_job, gt_frames, gt, batch=batch, inputs=[root], desc="gt")
         gt_totals = {"gt": {"methods": _count(dict(sample_params[k])["gt_method"]
                                               for k in gt_merged)}}  # fmt: skip
         if filter_occluded:
             gt_totals["gt"]["occluded_pixels"] = done.totals.get("occluded_pixels", 0)
-    sparse, confidence = _stage(out, "sparse" + suffix), None
+    sparse, confidence = stage_dir(out, "sparse" + suffix), None
     if jbf:
         from ...io.sources import radar_frames
         from ..jbf_expand import JbfJob
 
-        radar = radar_frames([_stage(out, "sparse" + suffix)], image=images_dir,
+        radar = radar_frames([stage_dir(out, "sparse" + suffix)], image=images_dir,
                              calib=images_dir / "calib")  # fmt: skip
-        run_job(JbfJob(), radar, _stage(out, "jbf" + suffix), batch=batch)
-        sparse = confidence = _stage(out, "jbf" + suffix)
+        run_job(JbfJob(), radar, stage_dir(out, "jbf" + suffix), batch=batch)
+        sparse = confidence = stage_dir(out, "jbf" + suffix)
     clouds = {str(f.key): str(f.cloud) for f in frames}
     sweeps_of = {str(f.key): tuple(f.sweeps) for f in frames}
     return _NuscenesStages(images_dir, sparse, gt, confidence, sample_params, merged, gt_totals,
@@ -318,6 +320,7 @@ def build_kitti_raw_dataset(
     cameras: tuple[int, ...] | None = None,
     geometry: bool = False,
     store_points: bool = False,
+    store: str = "copy",
     batch: Batch | None = None,
 ) -> RunSummary:
     """KITTI raw drives (a drive, a date folder or a root of dates) -> dataset: the camera
@@ -350,6 +353,8 @@ def build_kitti_raw_dataset(
     (:mod:`.cameras`); None or one camera: ``camera``, ids ``<drive>/<frame>`` as before.
     ``geometry``: the geometry columns (``K``, ``T_cam_lidar``, ``baseline_m``);
     ``store_points``: the points too (``points/part-*.parquet``).
+    ``store``: ``copy`` the images into the dataset, ``link`` (reflinks) or ``reference``:
+    leave them in the tree, recorded relative to the root ``kitti`` (``root``).
 
     Raises
     ------
@@ -363,7 +368,7 @@ def build_kitti_raw_dataset(
 
     cams = tuple(cameras) if cameras else (camera,)
     for c in cams:
-        _check_kitti_raw_gt(gt, gt_neighbours, stereo_check, icp_min_range, c)
+        check_kitti_raw_gt(gt, gt_neighbours, stereo_check, icp_min_range, c)
     if resize_to is not None:
         from ...validate import parse_size
 
@@ -382,13 +387,20 @@ def build_kitti_raw_dataset(
             "--resize-to with several --cameras is not supported: build one dataset per camera",
             param="--resize-to",
         )
+    if store == "reference" and (rig or resize_to is not None):
+        raise UsageError(
+            "--store reference leaves the tree's images in place: not with "
+            + ("several --cameras" if rig else "--resize-to (the images are resized copies)")
+            + "; use --store copy",
+            param="--store",
+        )
     if rig:  # every camera's images found before any stage runs
         from ...io.sources import index_input
 
         for c in cams:
             index_input(root, "image", option="--cameras", camera=c)
     staged = {
-        c: _kitti_raw_stages(
+        c: kitti_raw_stages(
             root, out, camera=c, suffix=f"_image_0{c}" if rig else "", beams=beams, gt=gt,
             filter_occluded=filter_occluded, gt_neighbours=gt_neighbours,
             stereo_check=stereo_check, icp_min_range=icp_min_range, resize_to=resize_to,
@@ -429,7 +441,7 @@ def build_kitti_raw_dataset(
         if resize_to is not None:
             from ...io.sources import cloud_frames
 
-            rgb, calib = _resized_images(cloud_frames([root], camera=cams[0]), out, resize_to,
+            rgb, calib = resized_images(cloud_frames([root], camera=cams[0]), out, resize_to,
                                          camera=cams[0], root=root, batch=batch)  # fmt: skip
         summary = build_dataset(
             out, rgb=rgb, calib=calib, sparse=sparse, gt=gt_dir, split=split,
@@ -437,13 +449,14 @@ def build_kitti_raw_dataset(
             official_split=official_split, seed=seed, sparse_format=sparse_format,
             source=source, camera=cams[0], params=params, param_options=KITTI_RAW_OPTIONS,
             sample_params=per_sample, geometry=geometry, store_points=store_points,
-            frame_fields={"cloud": clouds} if store_points else None, batch=batch,
+            frame_fields={"cloud": clouds} if store_points else None, store=store,
+            rgb_root_name="kitti", batch=batch,
         )  # fmt: skip
     else:
         settings = BuildSettings.with_splits(
             split, split_files, official_split=official_split, sparse_format=sparse_format,
             source=source, seed=seed, params=params, geometry=geometry,
-            store_points=store_points,
+            store_points=store_points, store=store,
         )  # fmt: skip
         found = find_rig_inputs(settings, [
             CameraInputs(f"image_0{c}", rgb=root, sparse=staged[c][0], gt=staged[c][1], index=c,
@@ -464,83 +477,6 @@ def build_kitti_raw_dataset(
     )
 
 
-def _resized_images(frames, out: Path, size, *, camera, root, batch) -> tuple[Path, Path]:
-    """The images stage of ``--resize-to``: every frame's camera image at ``size`` and its
-    calibration (``.sources/images/calib``), the folders the dataset is built from."""
-    from ...io.calib import load_calibration
-    from ..camera_images import CameraImageJob, CameraImageSettings
-
-    loaded = {}  # one read per calibration folder (a date's pair)
-    for f in frames:
-        if f.image is not None and f.calib not in loaded:
-            loaded[f.calib] = load_calibration(f.calib, camera=camera)
-    with_image = [replace(f, calibration=loaded[f.calib]) for f in frames if f.image is not None]
-    images = _stage(out, "images")
-    if with_image:
-        job = CameraImageJob(CameraImageSettings(resize_to=size))
-        run_job(job, with_image, images, batch=batch, inputs=[root], desc="images")
-    return images, images / "calib"
-
-
-def _kitti_raw_stages(
-    root,
-    out: Path,
-    *,
-    camera,
-    suffix,
-    beams,
-    gt,
-    filter_occluded,
-    gt_neighbours,
-    stereo_check,
-    icp_min_range,
-    resize_to,
-    batch,
-):
-    """One camera's stages of ``dataset kitti-raw`` (folders ``DATASET/.sources/<stage>
-    <suffix>``): the sparse input folder, the ground-truth folder, each frame's ``gt_method``
-    and window, the ground truth's totals, each frame's scan (by frame id)."""
-    from ...io.sources import Frame, cloud_frames, kitti_raw_index
-    from ..beams import BeamsJob, BeamsSettings
-    from ..project import ProjectJob, ProjectSettings
-
-    frames = cloud_frames([root], camera=camera)
-    project = ProjectJob(ProjectSettings(camera=camera, resize_to=resize_to))
-    plain_gt = gt == "scan" and not filter_occluded
-    if plain_gt or beams is None:  # the scan's projection: the truth, or the 64-beam input
-        run_job(project, frames, _stage(out, "gt" + suffix), batch=batch, inputs=[root])
-    gt_dir, gt_totals = _stage(out, "gt" + suffix), {}
-    methods, windows = dict.fromkeys((str(f.key) for f in frames), "scan"), {}
-    if gt == "scan" and filter_occluded:
-        gt_dir = _stage(out, "gt_occluded" + suffix)
-        occluded = ProjectJob(replace(project.settings, filter_occluded=True))
-        s = run_job(occluded, frames, gt_dir, batch=batch, inputs=[root], desc="gt")
-        methods = dict.fromkeys(methods, "scan+occlusion")
-        gt_totals = {"occluded_pixels": s.totals.get("occluded_pixels", 0)}
-    elif gt == "accumulated":
-        gt_dir, methods, windows, gt_totals = _accumulated_gt(
-            root, out, neighbours=gt_neighbours, stereo=stereo_check,
-            icp_min_range=icp_min_range, camera=camera, resize_to=resize_to, batch=batch,
-            suffix=suffix,
-        )  # fmt: skip
-    sparse = _stage(out, "gt" + suffix)
-    if beams is not None:
-        beams_dir = _stage(out, f"beams{beams}{suffix}")
-        run_job(BeamsJob(BeamsSettings(n=(beams,))), frames, beams_dir, batch=batch,
-                inputs=[root])  # fmt: skip
-        raw = kitti_raw_index(root, what="cloud", camera=camera)
-        beam_frames = [
-            Frame(key=f.key, cloud=f.key.path(beams_dir, ".bin"), calib=raw.calib[f.key],
-                  image=f.image)
-            for f in frames
-        ]  # fmt: skip
-        sparse = _stage(out, f"sparse{beams}{suffix}")
-        run_job(project, beam_frames, sparse, batch=batch)
-    clouds = {str(f.key): str(f.cloud) for f in frames}
-    return sparse, gt_dir, methods, windows, gt_totals, clouds
-
-
-#: The vocabulary of ``generation_params["sample"]["gt_method"]`` (docs/dataset.md).
 GT_METHOD_DOC = """scan                      one LiDAR scan projected (kitti-raw's default: not recorded,
                           so its rows stay as 0.2 wrote them; dataset info reads them as scan)
 scan+occlusion            the same without its see-through points (--filter-occluded)
@@ -561,93 +497,6 @@ def _count(values) -> dict[str, int]:
     return dict(sorted(out.items(), key=lambda kv: (-kv[1], kv[0])))
 
 
-def _check_kitti_raw_gt(gt, neighbours, stereo, icp_min_range, camera) -> None:
-    from ...validate import check_choice, check_int_range, check_non_negative
-
-    check_choice(gt, "--gt-method", ("scan", "accumulated"))
-    check_int_range(neighbours, "--gt-neighbours", low=0, high=100)
-    check_non_negative(icp_min_range, "--icp-min-range")
-    if gt != "accumulated":
-        given = [name for name, off in (("--gt-neighbours", neighbours == 5),
-                                        ("--stereo-check/--no-stereo-check", stereo is None),
-                                        ("--icp-min-range", icp_min_range == 0.0)) if not off]  # fmt: skip
-        if given:
-            raise UsageError(f"{given[0]} goes with --gt-method accumulated", param=given[0])
-    if stereo and camera != 2:
-        raise UsageError(
-            "--stereo-check matches image_02 (left) with image_03: camera 2 only",
-            param="--stereo-check",
-        )
-
-
-def _accumulated_gt(
-    root,
-    out: Path,
-    *,
-    neighbours,
-    stereo,
-    icp_min_range,
-    camera,
-    batch,
-    resize_to=None,
-    suffix="",
-):
-    """The accumulate stage (and the stereo stage) of ``--gt-method accumulated``: the folder
-    of the ground truth, each sample's ``gt_method`` and window (``t-A..t+B``, clipped at the
-    drive's ends), the stages' totals."""
-    from ...io.sources.kitti import kitti_raw_partner_image
-    from ...ops.accumulate import AccumulateSettings
-    from ..accumulate import IcpSettings, accumulation_job, sequences_of
-    from ..stereo_check import StereoCheckJob
-
-    job, frames = accumulation_job(
-        [root], window=neighbours, accumulate=AccumulateSettings(occlude_own=True), icp=None,
-        icp_settings=IcpSettings(min_range=icp_min_range), camera=camera, resize_to=resize_to,
-    )  # fmt: skip
-    job = replace(job, option_aliases=(("window", "--gt-neighbours"),))
-    acc_dir = _stage(out, "gt_accumulated" + suffix)
-    acc = run_job(job, frames, acc_dir, batch=batch, inputs=[root], desc="accumulate")
-    source = job.settings.pose_source
-    poses = {"kitti-oxts": "oxts"}.get(source, source)
-    if poses == "icp":
-        log.info("--gt-method accumulated: poses by ICP (not every drive has oxts)")
-    right = {}
-    if stereo is not False and camera == 2:
-        for f in frames:
-            partner = None if f.image is None else kitti_raw_partner_image(f.image, camera=3)
-            if partner is not None:
-                right[f.id] = str(partner)
-            elif stereo:
-                raise FormatError(f"--stereo-check: frame {f.id} has no image_03 ({f.image})")
-        if stereo is None and len(right) < len(frames):
-            log.warning(
-                "--gt-method accumulated: %d of %d frame(s) have no image_03: their ground truth is not "
-                "stereo-checked (each row's gt_method says so)", len(frames) - len(right),
-                len(frames),
-            )  # fmt: skip
-    methods, windows = {}, {}
-    for fs in sequences_of(frames).values():
-        for i, f in enumerate(fs):
-            lo, hi = max(0, i - neighbours), min(len(fs), i + neighbours + 1)
-            tags = f"poses={poses},occlusion,consistency" + (",stereo" if f.id in right else "")
-            methods[f.id] = f"accumulated(t-{neighbours}..t+{neighbours},{tags})"
-            windows[f.id] = f"t-{i - lo}..t+{hi - 1 - i}"
-    t = acc.totals
-    totals = {"pose_source": poses, "clipped_windows": t.get("clipped_windows", 0),
-              "density_pct": t.get("density_pct"), "removed": t.get("removed"),
-              "stereo_checked": len(right)}  # fmt: skip
-    if "icp" in t:
-        totals["icp"] = {k: v for k, v in t["icp"].items() if k != "per_pair"}
-    if not right:
-        return acc_dir, methods, windows, totals
-    stereo_frames = [replace(f, depth=f.key.path(acc_dir, ".png")) for f in frames]
-    checked_dir = _stage(out, "gt_stereo" + suffix)
-    check = StereoCheckJob(right=tuple(sorted(right.items())), resize_to=resize_to)
-    s = run_job(check, stereo_frames, checked_dir, batch=batch, inputs=[root], desc="stereo")
-    totals["stereo_removed"] = s.totals.get("removed", 0)
-    return checked_dir, methods, windows, totals
-
-
 def build_kitti_dc_dataset(
     root: str | os.PathLike,
     out_dir: str | os.PathLike,
@@ -658,6 +507,7 @@ def build_kitti_dc_dataset(
     selection: bool = False,
     camera: int = 2,
     sparse_format: str = "both",
+    store: str = "copy",
     batch: Batch | None = None,
 ) -> RunSummary:
     """A KITTI depth-completion root -> dataset, split as the tree splits it.
@@ -666,7 +516,9 @@ def build_kitti_dc_dataset(
     with ``{train,val}/<drive>/proj_depth/``); images come from the KITTI raw tree ``raw``.
     ``selection``: the 1,000-frame ``depth_selection/val_selection_cropped`` set instead, with
     its own images and intrinsics (split ``val_selection``). Frames without ground truth (the
-    first and last 5 of each drive) are counted in the summary's ``unmatched``.
+    first and last 5 of each drive) are counted in the summary's ``unmatched``. ``store``: as
+    :func:`build_kitti_raw_dataset`'s; the images are referenced relative to the root
+    ``kitti`` (``raw``; with ``selection``, the selection folder).
     """
     root = Path(root)
     if selection:
@@ -674,7 +526,8 @@ def build_kitti_dc_dataset(
         sel = sel if sel.is_dir() else root
         return build_dataset(
             out_dir, rgb=sel, sparse=sel, gt=sel, calib=sel, split="tree",
-            sparse_format=sparse_format, source="lidar", camera=camera,
+            sparse_format=sparse_format, source="lidar", camera=camera, store=store,
+            rgb_root_name="kitti",
             params={"route": "kitti-dc", "selection": True}, param_options=KITTI_DC_OPTIONS,
             batch=batch,
         )  # fmt: skip
@@ -691,7 +544,8 @@ def build_kitti_dc_dataset(
     gt = root / "data_depth_annotated" if (root / "data_depth_annotated").is_dir() else root
     return build_dataset(
         out_dir, rgb=raw, sparse=sparse, gt=gt, split="tree", sparse_name=sparse_name,
-        gt_name=gt_name, sparse_format=sparse_format, camera=camera,
+        gt_name=gt_name, sparse_format=sparse_format, camera=camera, store=store,
+        rgb_root_name="kitti",
         source=f"lidar-{sparse_name}" if sparse_name else "lidar",
         params={"route": "kitti-dc", "sparse": sparse_name or "velodyne_raw"},
         param_options=KITTI_DC_OPTIONS, batch=batch,

@@ -11,9 +11,12 @@ from ...validate import check_choice, check_int_range
 from .official_splits import official_split
 from .splits import DEFAULT_SPLIT, parse_split_fractions, sequence_resolver
 
-__all__ = ["SPARSE_FORMATS", "BuildSettings"]
+__all__ = ["SPARSE_FORMATS", "STORE_MODES", "BuildSettings"]
 
 SPARSE_FORMATS = ("png", "parquet", "both")
+#: How a build stores the camera images (``--store``): copied, reflinked where the file
+#: system can (else copied), or referenced in place (a root name, a path, its identity).
+STORE_MODES = ("copy", "link", "reference")
 
 
 @dataclass(frozen=True)
@@ -25,8 +28,11 @@ class BuildSettings:
     sparse_format : {"png", "parquet", "both"}
     sparse_name, gt_name : str, optional
         KITTI depth-completion map sets of the sparse input and the ground truth.
-    link : bool
-        Reflink the input files where the file system can, instead of copying them.
+    store : {"copy", "link", "reference"}
+        ``copy`` the input files into the dataset; ``link``: reflink them where the file
+        system can (else copy); ``reference``: keep the camera images where they are and
+        record them (root name, relative path, identity) in the manifest; the other files
+        are copied.
     source : str
         Sensor of the sparse depth (``lidar``, ``lidar-4beam``, ``radar``...).
     params : dict, optional
@@ -56,7 +62,7 @@ class BuildSettings:
     sparse_format: str = "both"
     sparse_name: str | None = None
     gt_name: str | None = None
-    link: bool = False
+    store: str = field(default="copy", metadata={"option": "--store"})
     source: str = "lidar"
     params: dict | None = None
     sequence_from: str = "parent"
@@ -89,7 +95,7 @@ class BuildSettings:
             object.__setattr__(self, "split", parse_split_fractions(self.split))
         if self.split_files is not None:
             object.__setattr__(self, "split_files", tuple(self.split_files) or None)
-        object.__setattr__(self, "link", bool(self.link))
+        check_choice(self.store, "store", STORE_MODES)
         object.__setattr__(self, "store_points", bool(self.store_points))
         object.__setattr__(self, "geometry", bool(self.geometry) or self.store_points)
         object.__setattr__(self, "source", str(self.source))
@@ -138,3 +144,14 @@ class BuildSettings:
         if self.split_from_tree:
             return {"method": "tree"}
         return {"method": "sequence", "fractions": dict(self.split), "seed": self.seed}
+
+    def record_store(self, record: dict) -> dict:
+        """``record`` (the settings as recorded) with the store mode as earlier versions
+        recorded it: ``link`` (a bool, as 0.2 and 0.3 wrote it), and ``store`` only for
+        ``reference``, so that their folders resume."""
+        record = dict(record)
+        record.pop("store", None)
+        record["link"] = self.store == "link"
+        if self.store == "reference":
+            record["store"] = "reference"
+        return record

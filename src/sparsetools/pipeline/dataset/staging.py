@@ -26,11 +26,10 @@ from ...io.dataset import (
     ManifestRow,
     brief_error,
     bytes_sha256,
-    decode_confidence_bytes,
-    decode_depth_bytes,
     depth_to_points,
     points_sha256,
 )
+from ...io.depth_files import decode_confidence_bytes, decode_depth_bytes
 from ..core import FrameStats
 from .settings import BuildSettings
 
@@ -414,12 +413,13 @@ STAGES = ("t_read", "t_decode", "t_encode", "t_hash", "t_write", "t_stage")
 
 
 def sample_files(
-    x: DatasetFrameInput, sparse_format: str, *, store_points: bool = False
+    x: DatasetFrameInput, sparse_format: str, store: str = "copy", *, store_points: bool = False
 ) -> dict[str, str]:
     """Dataset-relative path of every file a frame writes, by role; with ``store_points``
     its points (``points``, staged: merged into a part); the staging record (``staged``,
-    written last: it marks the frame complete) at the end."""
-    files = {"rgb": f"rgb/{x.id}{Path(x.rgb).suffix.lower()}"}
+    written last: it marks the frame complete) at the end. With ``store`` ``reference`` the
+    camera image is not written (it is referenced in place)."""
+    files = {} if store == "reference" else {"rgb": f"rgb/{x.id}{Path(x.rgb).suffix.lower()}"}
     if sparse_format in ("png", "both"):
         files["sparse"] = f"{SPARSE_DIR}/{x.id}.png"
     for kind in ("gt", "confidence"):
@@ -432,11 +432,41 @@ def sample_files(
     return files
 
 
+def _reference(path: str, rgb_root: tuple[str, str] | None) -> tuple[str, str, os.stat_result]:
+    """(root name, path relative to the root, stat) of an image referenced in place; refused
+    when it is not inside the root (a link leaving it included)."""
+    from ...io.dataset import resolve_reference
+
+    if rgb_root is None:
+        raise FormatError("--store reference: the build names no root of the camera images")
+    name, root = rgb_root
+    rel = os.path.relpath(os.path.abspath(path), os.path.abspath(root))
+    rel = Path(rel).as_posix()
+    try:
+        full = resolve_reference(root, rel, name=name)
+    except FormatError as exc:
+        raise FormatError(
+            f"{path}: cannot be referenced in place ({exc}); use --store copy"
+        ) from None
+    try:
+        st = os.stat(full)
+    except OSError as exc:
+        raise FormatError(f"{path}: cannot read ({exc.strerror or exc})") from exc
+    return name, rel, st
+
+
 def stage_frame(
-    x: DatasetFrameInput, outputs: Mapping[str, Path], settings: BuildSettings
+    x: DatasetFrameInput,
+    outputs: Mapping[str, Path],
+    settings: BuildSettings,
+    rgb_root: tuple[str, str] | None = None,
 ) -> DatasetFrameStats:
     """Copy (or reflink) one frame's files to ``outputs`` (from :func:`sample_files`) after
-    decoding every input to check it, and stage its manifest row and points."""
+    decoding every input to check it, and stage its manifest row and points.
+
+    With ``settings.store == "reference"`` the camera image stays where it is: the row
+    records ``rgb_root`` (the name of ``rgb_root = (name, path)``), ``rgb_path`` relative to
+    it and the file's identity (``rgb_size``, ``rgb_mtime_ns``, ``rgb_sha256``)."""
     fid = x.id
     t = dict.fromkeys(STAGES, 0.0)
     clock = time.perf_counter
@@ -447,16 +477,21 @@ def stage_frame(
         t[stage] += clock() - t0
         return out
 
-    rel = sample_files(x, settings.sparse_format, store_points=settings.store_points)
+    rel = sample_files(
+        x, settings.sparse_format, settings.store, store_points=settings.store_points
+    )
     desc = dict(x.inputs_desc)
 
-    # RGB: stored byte for byte with its own suffix.
+    # RGB: stored byte for byte with its own suffix, or referenced where it is.
+    ref = _reference(x.rgb, rgb_root) if settings.store == "reference" else None
     data = timed("t_read", _read_bytes, x.rgb, "image")
+    if ref is not None and len(data) != ref[2].st_size:
+        raise FormatError(f"{x.rgb}: the file changed while it was read")
     w, h = timed("t_decode", _decode_rgb_size, data, x.rgb)
     rgb_sha256 = timed("t_hash", bytes_sha256, data)
     # Files are written only once every input of the frame has been decoded and checked, so
     # a bad frame leaves nothing behind in the dataset.
-    writes = [(data, x.rgb, outputs["rgb"])]
+    writes = [] if ref is not None else [(data, x.rgb, outputs["rgb"])]
 
     # Sparse depth: the float32 map as decoded, then PNG and/or points.
     fmt = settings.sparse_format
@@ -548,7 +583,10 @@ def stage_frame(
         fy=fy,
         cx=cx,
         cy=cy,
-        rgb_path=rel["rgb"],
+        rgb_path=rel["rgb"] if ref is None else ref[1],
+        rgb_root=None if ref is None else ref[0],
+        rgb_size=None if ref is None else int(ref[2].st_size),
+        rgb_mtime_ns=None if ref is None else int(ref[2].st_mtime_ns),
         sparse_path=rel.get("sparse"),
         sparse_parquet=None,  # the part is written when the frames are merged
         sparse_row=None,
@@ -572,7 +610,7 @@ def stage_frame(
     )
     linked = 0
     for wdata, wsrc, wdst in writes:
-        linked += timed("t_write", _store, wdata, wsrc, wdst, settings.link)
+        linked += timed("t_write", _store, wdata, wsrc, wdst, settings.store == "link")
     t0 = clock()
     write_record(outputs["staged"], row.to_dict(), points)
     t["t_stage"] += clock() - t0

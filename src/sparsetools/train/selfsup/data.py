@@ -272,7 +272,7 @@ class TripletDataset(Dataset):
         from ...io.image import read_image
 
         row = self.reader.row(position)
-        rgb = read_image(self.reader.path(row["rgb_path"], what="rgb_path"))
+        rgb = read_image(self.reader.rgb_path(position))  # in the dataset, or referenced
         if rgb.shape[:2] != (row["height"], row["width"]):
             raise FormatError(
                 f"sample '{row['id']}': rgb is {rgb.shape[1]}x{rgb.shape[0]}, the manifest says "

@@ -133,7 +133,7 @@ def evaluate_pose(
     uses_lidar = bool(getattr(pose_net, "uses_lidar", False))
 
     def frame(i):
-        rgb = read_image(reader.path(reader.row(i)["rgb_path"], what="rgb_path"))
+        rgb = read_image(reader.rgb_path(i))  # in the dataset, or referenced
         return torch.from_numpy(rgb.astype(np.float32).transpose(2, 0, 1) / 255.0)
 
     errors = []
