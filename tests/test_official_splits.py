@@ -143,7 +143,7 @@ def test_each_name_maps_to_its_lists():
 
 
 def test_the_help_names_the_catalogues_splits():
-    from sparsetools.cli.dataset import SPLIT_NAMES
+    from sparsetools.cli.dataset_options import SPLIT_NAMES
 
     for dataset, names in SPLIT_NAMES.items():
         assert names == official_split_names(dataset)

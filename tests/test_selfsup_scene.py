@@ -173,6 +173,7 @@ def write_video_dataset(
         MANIFEST_SCHEMA,
         METADATA_INFO_KEY,
         METADATA_VERSION_KEY,
+        REFERENCE_COLUMNS,
         SCHEMA_VERSION,
         file_sha256,
     )
@@ -221,7 +222,8 @@ def write_video_dataset(
             if poses:
                 row["T_world_cam"] = [float(v) for v in fr.T_world_cam.ravel()]
             rows.append(row)
-    fields = list(MANIFEST_SCHEMA)
+    # a schema-2 manifest: the columns of --store reference are written only when used
+    fields = [f for f in MANIFEST_SCHEMA if f.name not in REFERENCE_COLUMNS]
     if frame_index and "frame_index" not in MANIFEST_SCHEMA.names:
         fields.append(pa.field("frame_index", pa.int32()))
     if poses and "T_world_cam" not in MANIFEST_SCHEMA.names:

@@ -18,6 +18,7 @@ from .options import (
 from .parsing import named_paths
 
 __all__ = [
+    "SPLIT_NAMES",
     "params_callback",
     "root_option",
     "sequence_callback",
