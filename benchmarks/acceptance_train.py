@@ -265,8 +265,8 @@ def docs_pictures(run: Path, dataset: Path, img: Path) -> None:
     from sparsetools.train.model import model_inputs
     from sparsetools.train.plots import draw_curves, prediction_picture
 
-    with open(run / "metrics.csv") as f:
-        history = [{k: float(v) for k, v in r.items()} for r in csv.DictReader(f)]
+    with open(run / "metrics.csv") as f:  # numbers only: the run id (0.3) is text
+        history = [{k: float(v) for k, v in r.items() if k != "run_id"} for r in csv.DictReader(f)]
     _write_png(img / "train_curves.png", draw_curves(history, loss_name="l1"))
     model = model_from_checkpoint(load_checkpoint(run / "best.pt")).eval()
     test = DatasetReader(dataset).split("test")

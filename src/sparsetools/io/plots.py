@@ -180,7 +180,14 @@ def _draw(ax, panel: Panel) -> None:
         ax.yaxis.set_major_locator(MaxNLocator(integer=True))
         ax.xaxis.set_major_locator(MaxNLocator(5))
     if _log_axis(panel):
+        from matplotlib.ticker import FormatStrFormatter, LogLocator
+
         ax.set_yscale("log")
+        # plain numbers (0.5, 1, 2, 5, 10), not mathtext powers (2 x 10^0); minor ticks at
+        # 2 and 5 only, so their labels never crowd
+        ax.yaxis.set_major_formatter(FormatStrFormatter("%g"))
+        ax.yaxis.set_minor_locator(LogLocator(base=10.0, subs=(2.0, 5.0)))
+        ax.yaxis.set_minor_formatter(FormatStrFormatter("%g"))
     ax.set_title(panel.title, fontsize=11)
     ax.set_xlabel(panel.xlabel)
     ax.set_ylabel(panel.ylabel)
