@@ -14,6 +14,7 @@ import pyarrow.parquet as pq
 import pytest
 from click.testing import CliRunner
 
+from _kitti_raw_tree import make_raw_tree
 from sparsetools.cli.main import cli
 from sparsetools.errors import FormatError
 from sparsetools.io.dataset import MANIFEST_NAME, ManifestRow, read_manifest
@@ -33,17 +34,7 @@ def run(*args, quiet=True):
 
 def make_raw(real_dir: Path, root: Path) -> Path:
     """root/2011_09_26/{calib, drive_0001_sync/{image_02, velodyne_points}/data} (N frames)."""
-    seq = real_dir / "kitti-raw-sequence-2011_09_26"
-    date = root / DATE
-    date.mkdir(parents=True)
-    for name in ("calib_cam_to_cam.txt", "calib_velo_to_cam.txt", "calib_imu_to_velo.txt"):
-        shutil.copy(seq / name, date / name)
-    for i in range(N):
-        for sub, ext in (("velodyne_points", ".bin"), ("image_02", ".png")):
-            folder = date / DRIVE / sub / "data"
-            folder.mkdir(parents=True, exist_ok=True)
-            shutil.copy(seq / sub / "data" / f"{i:010d}{ext}", folder / f"{i:010d}{ext}")
-    return root
+    return make_raw_tree(real_dir, root, {DRIVE: range(N)})
 
 
 def image(raw: Path, i: int) -> Path:

@@ -24,6 +24,7 @@ from sparsetools.io.dataset import MANIFEST_SCHEMA, OPTIONAL_SCHEMA, REFERENCE_C
 from sparsetools.io.dataset_reader import DatasetReader
 
 sys.path.insert(0, str(Path(__file__).parent))
+from _kitti_raw_tree import make_raw_tree
 from _nuscenes_tree import CAMERAS, build_tree
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -52,24 +53,8 @@ def _kv(path: Path) -> dict:
 @pytest.fixture(scope="module")
 def raw(real_dir, tmp_path_factory):
     """Two drives of the real frames, each frame with image_02 and image_03 (a copy)."""
-    seq = real_dir / "kitti-raw-sequence-2011_09_26"
-    root = tmp_path_factory.mktemp("raw")
-    date = root / DATE
-    date.mkdir()
-    for name in ("calib_cam_to_cam.txt", "calib_velo_to_cam.txt", "calib_imu_to_velo.txt"):
-        shutil.copy(seq / name, date / name)
-    for drive, frames in DRIVES.items():
-        for i in frames:
-            for sub, ext in (
-                ("velodyne_points", ".bin"),
-                ("image_02", ".png"),
-                ("image_03", ".png"),
-            ):
-                src = seq / ("image_02" if sub == "image_03" else sub) / "data" / f"{i:010d}{ext}"
-                folder = date / drive / sub / "data"
-                folder.mkdir(parents=True, exist_ok=True)
-                shutil.copy(src, folder / f"{i:010d}{ext}")
-    return root
+    return make_raw_tree(real_dir, tmp_path_factory.mktemp("raw"), DRIVES,
+                         cameras=("image_02", "image_03"))  # fmt: skip
 
 
 @pytest.fixture(scope="module")

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from _cli import run, summary
+from _kitti_raw_tree import make_raw_tree
 
 pytestmark = pytest.mark.real
 
@@ -23,21 +24,8 @@ N = 3  # frames per drive
 @pytest.fixture(scope="module")
 def raw_root(real_dir, tmp_path_factory):
     """raw/2011_09_26/{calib, drive_0001 (frames 0-2), drive_0002 (frames 3-5 renamed 0-2)}."""
-    seq = real_dir / "kitti-raw-sequence-2011_09_26"
-    root = tmp_path_factory.mktemp("raw")
-    date = root / DATE
-    date.mkdir()
-    for name in ("calib_cam_to_cam.txt", "calib_velo_to_cam.txt", "calib_imu_to_velo.txt"):
-        shutil.copy(seq / name, date / name)
-    for d, drive in enumerate(DRIVES):
-        for i in range(N):
-            src = f"{d * N + i:010d}"
-            dst = f"{i:010d}"  # the same names in both drives
-            for sub, ext in (("velodyne_points", ".bin"), ("image_02", ".png")):
-                folder = date / drive / sub / "data"
-                folder.mkdir(parents=True, exist_ok=True)
-                shutil.copy(seq / sub / "data" / f"{src}{ext}", folder / f"{dst}{ext}")
-    return root
+    drives = {drive: [(d * N + i, i) for i in range(N)] for d, drive in enumerate(DRIVES)}
+    return make_raw_tree(real_dir, tmp_path_factory.mktemp("raw"), drives)
 
 
 def test_project_and_beams_keep_every_frame_per_drive(raw_root, tmp_path):

@@ -8,7 +8,6 @@ point at the native size, then the per-axis map of pixel centres ``u' = sx (u + 
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 import cv2
@@ -16,6 +15,7 @@ import numpy as np
 import pytest
 
 from _cli import run, summary
+from _kitti_raw_tree import make_raw_tree
 from sparsetools.calibration import Calibration
 from sparsetools.errors import ParameterError
 
@@ -152,18 +152,7 @@ def _values(path: Path) -> dict[str, np.ndarray]:
 @pytest.fixture(scope="module")
 def raw_root(real_dir, tmp_path_factory):
     """raw/2011_09_26/{calib pair, drive_0001 frames 0-2 (image_02, velodyne_points)}."""
-    seq = real_dir / "kitti-raw-sequence-2011_09_26"
-    root = tmp_path_factory.mktemp("raw")
-    date = root / DATE
-    date.mkdir()
-    for name in ("calib_cam_to_cam.txt", "calib_velo_to_cam.txt", "calib_imu_to_velo.txt"):
-        shutil.copy(seq / name, date / name)
-    for sub, ext in (("velodyne_points", ".bin"), ("image_02", ".png")):
-        folder = date / DRIVE / sub / "data"
-        folder.mkdir(parents=True)
-        for i in range(N):
-            shutil.copy(seq / sub / "data" / f"{i:010d}{ext}", folder / f"{i:010d}{ext}")
-    return root
+    return make_raw_tree(real_dir, tmp_path_factory.mktemp("raw"), {DRIVE: range(N)})
 
 
 @pytest.fixture(scope="module")
