@@ -121,8 +121,10 @@ def test_sfe_and_dense_have_the_same_shapes_and_parameter_layout():
     assert sum(n) > sum(p.numel() for p in none.parameters())
     assert isinstance(sfe.lidar_branch, SparseFeatureExtractor)
     assert isinstance(dense.lidar_branch, DenseLidarEncoder)
-    # the branch's widths are the U-Net's level widths; the U-Net itself is unchanged
-    assert sfe.lidar_branch.out_channels == dense.lidar_branch.out_channels == sfe.widths
+    # the branch's widths are the widths of the U-Net levels it feeds (1/2 .. 1/16 by
+    # default, EffisDepth's levels: never full resolution); the U-Net itself is unchanged
+    assert sfe.lidar_scales == sfe.lidar_branch.scales == (2, 4, 8, 16)
+    assert sfe.lidar_branch.out_channels == dense.lidar_branch.out_channels == sfe.widths[1:]
     shapes = {k: v.shape for k, v in unet_part(none.state_dict()).items()}
     for m in (sfe, dense):
         assert {k: v.shape for k, v in unet_part(m.state_dict()).items()} == shapes
@@ -188,11 +190,13 @@ def reference_forward(model: DepthCompletionUNet, rgb, sparse):
     h, w = rgb.shape[-2:]
     pad = (0, (-w) % 16, 0, (-h) % 16)
     x = F.pad(model_inputs(rgb, None, "rgb"), pad)
-    lidar = model.lidar_branch(F.pad(sparse, pad))
+    lidar = dict(zip(model.lidar_scales, model.lidar_branch(F.pad(sparse, pad)), strict=True))
     y = model.stem(x)
     skips = []
     for i, block in enumerate(model.encoder):
-        y = block(F.max_pool2d(y, 2) if i else y) + lidar[i]
+        y = block(F.max_pool2d(y, 2) if i else y)
+        if 2**i in lidar:
+            y = y + lidar[2**i]
         skips.append(y)
     y = skips[-1]
     for stage, skip in zip(model.decoder, reversed(skips[:-1]), strict=True):
@@ -200,9 +204,10 @@ def reference_forward(model: DepthCompletionUNet, rgb, sparse):
     return (20.0 * F.softplus(model.head(y)))[:, :, :h, :w]
 
 
+@pytest.mark.parametrize("scales", [(2, 4, 8, 16), (1, 2, 4, 8, 16), (4, 16)])
 @pytest.mark.parametrize("encoder", ["sfe", "dense"])
-def test_fusion_equals_the_written_out_reference(encoder):
-    model = live_head(unet(encoder, seed=7)).double().eval()
+def test_fusion_equals_the_written_out_reference(encoder, scales):
+    model = live_head(unet(encoder, seed=7, lidar_scales=scales)).double().eval()
     rgb, sparse = (t.double() for t in batch(4))
     with torch.no_grad():
         got = model.run(rgb, sparse)
@@ -233,6 +238,14 @@ def test_lidar_argument_and_config_errors():
     assert "lidar_encoder" not in unet("none").config()
     old = {"input_mode": "rgbd", "width": 4, "final_layer": False}
     assert build_model(old).lidar_encoder == "none" and build_model(old).lidar_branch is None
+    # the fused levels are recorded; checkpoints from before (no key) fed every level
+    assert cfg["lidar_scales"] == [2, 4, 8, 16] and clone.lidar_scales == (2, 4, 8, 16)
+    legacy = {k: v for k, v in cfg.items() if k != "lidar_scales"}
+    assert build_model(legacy).lidar_scales == (1, 2, 4, 8, 16)
+    for bad in ((), (2, 2), (4, 2), (3,), (32,), (True,)):
+        with pytest.raises(ParameterError, match="lidar_scales") as err:
+            DepthCompletionUNet("rgb", width=4, lidar_encoder="sfe", lidar_scales=bad)
+        assert err.value.param == "lidar_scales"
 
 
 # -- the pose network -------------------------------------------------------------------------------

@@ -57,7 +57,9 @@ def test_same_seed_same_metrics_and_weights(dataset, tmp_path):
     s2 = train(config(dataset, tmp_path / "b", selfsup=night))
     rows = read_rows(tmp_path / "a")
     assert len(rows) == 2 and rows == read_rows(tmp_path / "b")
-    assert s1.self_supervised and s1.best_metric == "rmse" and s1.best_value == s2.best_value
+    # best.pt by the validation photometric loss (the default: no ground truth read for it)
+    assert s1.self_supervised and s1.best_metric == "photometric"
+    assert s1.best_value == s2.best_value == min(float(r["photometric"]) for r in rows)
     a, b = load_checkpoint(tmp_path / "a" / "last.pt"), load_checkpoint(tmp_path / "b" / "last.pt")
     assert a.kind == "self-supervised"
     assert state_equal(a.model, b.model) and state_equal(a.pose_model, b.pose_model)
@@ -187,8 +189,11 @@ def test_cli_train_and_eval(dataset, tmp_path):
     assert (
         summary["mode"] == "self-supervised"
         and summary["epochs_done"] == 1
-        and "best_rmse" in summary
+        and "best_photometric" in summary
+        and summary["selected_by"] == "photometric"
     )
+    # true poses in the validation split: the run says whether its pose network learnt
+    assert isinstance(summary["pose_failure"], bool) and 0 <= summary["pose_ate_ratio"] <= 1
     saved = json.loads((run / "config.json").read_text())
     assert saved["selfsup"]["sparse_loss"] == "none" and saved["selfsup"]["pose_width"] == 4
     for name in ("metrics.csv", "last.pt", "best.pt", "curves.png", "predictions/epoch_001.png"):

@@ -37,6 +37,24 @@ TIMING = {"seconds", "samples_per_s", "epoch_seconds"}
 #: Settings shared by every case (TrainConfig fields).
 BASE = dict(width=4, epochs=2, batch_size=4, lr=2e-3, threads=1, pictures=1, seed=3)
 
+#: Settings that did not exist in 0.2.0, pinned to what 0.2.0 did (0.4 changed their
+#: defaults: the metric pose translation scale, the SFE levels, GT-free model selection).
+LEGACY_SELFSUP = dict(pose_translation_scale=0.01, select_by="gt")
+LEGACY_LIDAR = dict(lidar_scales=(1, 2, 4, 8, 16))
+#: Keys (config, model_config, metrics rows) and metrics columns new since 0.2.0: left out of
+#: the fingerprints (the pinned values are checked on their own by test_train_golden.py).
+NEW_SINCE_020 = {
+    "lidar_scales",
+    "pose_translation_scale",
+    "pose_failure_ratio",
+    "lidar_dropout",
+    "lidar_holdout",
+    "select_by",
+    "ate",
+    "ate_unscaled",
+    "ate_still",
+}
+
 #: name -> TrainConfig fields (``selfsup``: SelfSupSettings fields) and the step the cut run
 #: stops at (inside the second epoch: 15 training frames = 4 batches of 4, 4, 4, 3; 9 triplets
 #: = 3 batches of 4, 4, 1).
@@ -45,16 +63,20 @@ CASES = {
         config=dict(input_mode="rgbd", loss="berhu", lr_schedule="step", lr_step=1),
         cut=6,
     ),
-    "supervised_sfe": dict(config=dict(input_mode="rgb", lidar_encoder="sfe"), cut=5),
+    "supervised_sfe": dict(
+        config=dict(input_mode="rgb", lidar_encoder="sfe", **LEGACY_LIDAR), cut=5
+    ),
     "selfsup_night": dict(
-        config=dict(input_mode="rgb", selfsup=dict(pose_width=4, mcie=True, sbm=True)),
+        config=dict(
+            input_mode="rgb", selfsup=dict(pose_width=4, mcie=True, sbm=True, **LEGACY_SELFSUP)
+        ),
         cut=4,
     ),
     "selfsup_sparse": dict(
         config=dict(
             input_mode="rgbd",
             lr_schedule="cosine",
-            selfsup=dict(pose_width=4, sparse_loss="silog", sbm=True, scales=3),
+            selfsup=dict(pose_width=4, sparse_loss="silog", sbm=True, scales=3, **LEGACY_SELFSUP),
         ),
         cut=5,
     ),
@@ -62,7 +84,14 @@ CASES = {
         config=dict(
             input_mode="rgb",
             lidar_encoder="sfe",
-            selfsup=dict(pose_width=4, sparse_loss="l1", pose_lidar_encoder="sfe", auto_mask=False),
+            **LEGACY_LIDAR,
+            selfsup=dict(
+                pose_width=4,
+                sparse_loss="l1",
+                pose_lidar_encoder="sfe",
+                auto_mask=False,
+                **LEGACY_SELFSUP,
+            ),
         ),
         cut=4,
     ),
@@ -124,6 +153,15 @@ def _canonical(obj):
     return obj
 
 
+def without_new_keys(obj):
+    """``obj`` with the dictionary keys of :data:`NEW_SINCE_020` removed, at every depth."""
+    if isinstance(obj, dict):
+        return {k: without_new_keys(v) for k, v in obj.items() if k not in NEW_SINCE_020}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(without_new_keys(v) for v in obj)
+    return obj
+
+
 def checkpoint_digests(path: Path) -> dict[str, str]:
     """sha256 per top-level entry of a checkpoint (run paths and timing left out)."""
     import torch
@@ -135,7 +173,7 @@ def checkpoint_digests(path: Path) -> dict[str, str]:
             continue
         if key == "config":
             value = {k: v for k, v in value.items() if k not in ("dataset", "out_dir")}
-        text = json.dumps(_canonical(value), sort_keys=True)
+        text = json.dumps(_canonical(without_new_keys(value)), sort_keys=True)
         out[key] = hashlib.sha256(text.encode()).hexdigest()
     return out
 
@@ -143,7 +181,10 @@ def checkpoint_digests(path: Path) -> dict[str, str]:
 def fingerprint(run: Path, summary) -> dict:
     """What a finished (or stopped) run must reproduce exactly."""
     with open(run / "metrics.csv", newline="") as f:
-        rows = [{k: v for k, v in r.items() if k not in TIMING} for r in csv.DictReader(f)]
+        rows = [
+            {k: v for k, v in r.items() if k not in TIMING | NEW_SINCE_020}
+            for r in csv.DictReader(f)
+        ]
     config = json.loads((run / "config.json").read_text())
     pictures = {
         p.relative_to(run).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
@@ -159,7 +200,12 @@ def fingerprint(run: Path, summary) -> dict:
             "best_value": repr(summary.best_value),
             "self_supervised": summary.self_supervised,
         },
-        "config": {k: v for k, v in config.items() if k not in ("dataset", "out_dir")},
+        "config": without_new_keys(
+            {k: v for k, v in config.items() if k not in ("dataset", "out_dir")}
+        ),
+        "new_settings": {
+            k: config.get(k, (config.get("selfsup") or {}).get(k)) for k in sorted(NEW_SINCE_020)
+        },
         "checkpoints": {name: checkpoint_digests(run / name) for name in ("last.pt", "best.pt")},
         "pictures": pictures,
     }

@@ -12,6 +12,7 @@ from .options import (
     deprecated,
     device_option,
     emit_summary,
+    int_list,
     json_option,
     max_depth_option,
     output_dir_option,
@@ -66,6 +67,7 @@ _FIELDS = {
     "pictures": "pictures",
     "threads": "threads",
     "lidar_encoder": "lidar_encoder",
+    "lidar_scales": "lidar_scales",
 }
 
 # CLI parameter -> the parameter of its deprecated spelling (hidden, kept for one release)
@@ -87,6 +89,11 @@ _SELFSUP_FIELDS = {
     "sbm_percentile": "sbm_percentile",
     "pose_width": "pose_width",
     "pose_lidar_encoder": "pose_lidar_encoder",
+    "pose_translation_scale": "pose_translation_scale",
+    "pose_failure_ratio": "pose_failure_ratio",
+    "lidar_dropout": "lidar_dropout",
+    "lidar_holdout": "lidar_holdout",
+    "select_by": "select_by",
 }
 
 
@@ -199,6 +206,46 @@ def selfsup_options(f):
             help="Self-supervised: LiDAR branch of the pose network too (EffisDepth's SFE in "
             "depth and pose): both frames' sparse depth, fused into its first five levels.",
         ),
+        click.option(
+            "--pose-translation-scale",
+            type=click.FloatRange(min=0, min_open=True),
+            default=None,
+            help="Self-supervised: factor on the pose network's raw translation [default: "
+            "0.01 (monodepth2) camera only; with --sparse-loss 0.5, the same initial flow "
+            "t/z for the metric 10 m start (docs/selfsup.md)].",
+        ),
+        click.option(
+            "--pose-failure-ratio",
+            type=click.FloatRange(min=0, max=1, min_open=True),
+            default=0.5,
+            show_default=True,
+            help="Self-supervised: flag the run as a pose failure when its last validation ATE "
+            "is above this fraction of the ATE of predicting no motion (needs true poses).",
+        ),
+        click.option(
+            "--lidar-dropout",
+            type=click.FloatRange(min=0, max=1, max_open=True),
+            default=0.0,
+            show_default=True,
+            help="Self-supervised: fraction of training batches whose LiDAR input is empty "
+            "(the sparse loss keeps its points): against a LiDAR branch copying its input.",
+        ),
+        click.option(
+            "--lidar-holdout",
+            type=click.FloatRange(min=0, max=1, max_open=True),
+            default=0.0,
+            show_default=True,
+            help="Self-supervised: fraction of each frame's points given to the sparse loss "
+            "only, the rest to the LiDAR input only (disjoint sets).",
+        ),
+        click.option(
+            "--select-by",
+            type=click.Choice(["photometric", "gt"]),
+            default="photometric",
+            show_default=True,
+            help="Self-supervised: best.pt by the validation photometric loss (reads no ground "
+            "truth) or by the validation RMSE against ground truth.",
+        ),
     ]
     for d in reversed(decorators):
         f = d(f)
@@ -283,6 +330,15 @@ def selfsup_options(f):
     "U-Net then takes the image alone (--input defaults to rgb). none = early fusion only.",
 )
 @click.option(
+    "--lidar-scales",
+    default="2,4,8,16",
+    show_default=True,
+    callback=int_list,
+    help="Encoder levels (by scale: 1 = full resolution .. 16) the LiDAR branch feeds; "
+    "EffisDepth fuses at 1/2 and below (at 1 the branch can copy each LiDAR pixel to its "
+    "output: docs/sfe.md).",
+)
+@click.option(
     "--final-layer/--no-final-layer",
     default=False,
     show_default=True,
@@ -345,7 +401,8 @@ def train(ctx, dataset, out_dir, resume, as_json, self_supervised, **options):
     the sparse depth gives metric scale; docs/selfsup.md).
 
     After every epoch: validation metrics in RUN_DIR/metrics.csv, checkpoints last.pt and
-    best.pt (lowest validation RMSE), curves.png and prediction pictures. The same seed
+    best.pt (supervised: lowest validation RMSE; self-supervised: lowest validation
+    photometric loss, or RMSE with --select-by gt), curves.png and prediction pictures. The same seed
     (and --threads) gives the same metrics on CPU; --resume continues exactly, and only the
     run that RUN_DIR's config.json and metrics.csv name (every run has a run id). The same
     command again on a finished run is a no-op; other settings need another RUN_DIR.

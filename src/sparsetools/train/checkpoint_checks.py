@@ -20,9 +20,9 @@ from pathlib import Path
 
 import torch
 
-from ..errors import FormatError
+from ..errors import FormatError, ParameterError
 from .config import MAX_WIDTH, TrainConfig
-from .model import INPUT_CHANNELS, LIDAR_ENCODERS, OUTPUTS
+from .model import INPUT_CHANNELS, LIDAR_ENCODERS, LIDAR_SCALES, OUTPUTS, check_lidar_scales
 
 __all__ = [
     "CHECKPOINT_FORMAT",
@@ -110,6 +110,10 @@ def check_model_config(mc, path: Path) -> dict:
     depth = mc.get("initial_depth")
     if depth is not None and not (_is_number(depth) and 0 < depth < math.inf):
         raise FormatError(f"{path}: model_config initial_depth must be a positive number")
+    try:  # before 0.4 every level was fed, and checkpoints did not say so
+        check_lidar_scales(mc.get("lidar_scales", list(LIDAR_SCALES)))
+    except ParameterError as exc:
+        raise FormatError(f"{path}: model_config {exc}") from None
     return dict(mc)
 
 
@@ -121,6 +125,9 @@ def check_pose_config(pc, path: Path) -> dict:
         raise FormatError(
             f"{path}: unknown LiDAR encoder {pc.get('lidar_encoder')!r} in pose_config"
         )
+    scale = pc.get("translation_scale", 0.01)
+    if not (_is_number(scale) and 0 < scale < math.inf):
+        raise FormatError(f"{path}: pose_config translation_scale must be a positive number")
     return dict(pc)
 
 
@@ -158,6 +165,11 @@ def check_agreement(config: TrainConfig, mc: dict, pc: dict | None, kind: str, p
         ("input_mode", config.input_mode, mc["input_mode"]),
         ("width", config.width, mc["width"]),
         ("lidar_encoder", config.lidar_encoder, mc.get("lidar_encoder", "none")),
+        (
+            "lidar_scales",
+            tuple(config.lidar_scales) if config.lidar_encoder != "none" else None,
+            tuple(mc.get("lidar_scales", LIDAR_SCALES)) if "lidar_encoder" in mc else None,
+        ),
         ("self_supervised", config.self_supervised, kind == "self-supervised"),
     ]
     if mc.get("output", "depth") == "depth":

@@ -27,7 +27,13 @@ from dataclasses import asdict, dataclass, fields, replace
 
 from ..errors import ParameterError
 from .losses import LOSSES
-from .model import INPUT_CHANNELS, LIDAR_ENCODERS
+from .model import (
+    DEFAULT_LIDAR_SCALES,
+    INPUT_CHANNELS,
+    LIDAR_ENCODERS,
+    LIDAR_SCALES,
+    check_lidar_scales,
+)
 from .runtime import resolve_device
 
 __all__ = [
@@ -35,6 +41,7 @@ __all__ = [
     "CONFIDENCE_MODES",
     "FIELD_OPTIONS",
     "MAX_WIDTH",
+    "SELECT_BY",
     "SPARSE_LOSSES",
     "SelfSupSettings",
     "TrainConfig",
@@ -45,6 +52,9 @@ __all__ = [
 
 #: Sparse-LiDAR losses of self-supervised training ("none" = camera only, scale-ambiguous).
 SPARSE_LOSSES = ("none", "l1", "silog")
+#: How a self-supervised run picks ``best.pt``: validation photometric loss (no ground truth
+#: read), or validation RMSE against ground truth.
+SELECT_BY = ("photometric", "gt")
 #: Input modes that feed the confidence map of ``dataset build --confidence`` to the network.
 CONFIDENCE_MODES = ("rgbdc",)
 #: Input modes without the camera image (the radar paper's radar-only baseline).
@@ -92,6 +102,11 @@ _KINDS = {
     int: (_is_int, "an integer"),
     int | None: (lambda v: v is None or _is_int(v), "an integer or null"),
     float: (_is_real, "a number"),
+    float | None: (lambda v: v is None or _is_real(v), "a number or null"),
+    tuple[int, ...]: (
+        lambda v: isinstance(v, (list, tuple)) and all(map(_is_int, v)),
+        "a list of integers",
+    ),
     bool: (lambda v: isinstance(v, bool), "true or false"),
     tuple[int, int] | None: (lambda v: v is None or _is_pair(_is_int)(v), "null or two integers"),
     tuple[float, float]: (_is_pair(_is_real), "two numbers"),
@@ -177,6 +192,29 @@ class SelfSupSettings:
         LiDAR branch of the pose network (EffisDepth's "SFE in depth and pose"): the two
         frames' sparse depth maps through an SFE (or its dense twin) whose features are added
         to the pose encoder's first five levels (:mod:`sparsetools.train.selfsup.pose_net`).
+    pose_translation_scale : float, optional
+        Factor on the pose network's raw translation. None (default): monodepth2's 0.01 for
+        camera-only runs, and for runs with the sparse loss the factor that gives them the
+        same initial flow t / z
+        (:func:`sparsetools.train.selfsup.pose_net.metric_translation_scale`, 0.5 for the
+        10 m start and 0.1-100 m). Configurations written before 0.4 lack the key and keep
+        0.01.
+    pose_failure_ratio : float
+        A run whose last validation ATE (per-snippet scaled) is above this fraction of the ATE
+        of predicting no motion is flagged as a pose failure (log and summary); 1 = the pose
+        network explains none of the motion. Needs true poses in the validation split.
+    lidar_dropout : float
+        Fraction of training batches whose LiDAR input (the depth network's branch, or the
+        sparse channels of ``--input rgbd``) is an empty map; the sparse loss still sees the
+        points. Drawn from ``(seed, step)``.
+    lidar_holdout : float
+        Fraction of each frame's sparse points withheld from the LiDAR input during training
+        and used only by the sparse loss (the others feed the input only): disjoint point sets,
+        so the network cannot pass its input straight to the loss. 0 = every point both.
+    select_by : {'photometric', 'gt'}
+        ``best.pt`` by the validation photometric loss (default; reads no ground truth) or by
+        the validation RMSE against ground truth (needs it in every validation frame).
+        Configurations written before 0.4 lack the key and keep ``'gt'``.
     """
 
     sparse_loss: str = "none"
@@ -193,6 +231,11 @@ class SelfSupSettings:
     sbm_percentile: float = 10.0
     pose_width: int = 16
     pose_lidar_encoder: str = "none"
+    pose_translation_scale: float | None = None
+    pose_failure_ratio: float = 0.5
+    lidar_dropout: float = 0.0
+    lidar_holdout: float = 0.0
+    select_by: str = "photometric"
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -212,6 +255,9 @@ class SelfSupSettings:
         d = _mapping(d, "the self-supervised settings (selfsup)")
         names = {f.name for f in fields(cls)}
         kw = {k: v for k, v in d.items() if k in names}
+        # settings written before 0.4 meant monodepth2's translation scale and GT selection
+        kw.setdefault("pose_translation_scale", 0.01)
+        kw.setdefault("select_by", "gt")
         pair = kw.get("depth_range")
         if isinstance(pair, (list, tuple)) and all(map(_is_real, pair)):
             kw["depth_range"] = tuple(float(v) for v in pair)
@@ -265,6 +311,27 @@ class SelfSupSettings:
                 f"{', '.join(LIDAR_ENCODERS)}",
                 param="pose_lidar_encoder",
             )
+        scale = self.pose_translation_scale
+        if scale is not None and not (scale > 0 and math.isfinite(scale)):
+            raise ParameterError(
+                f"pose_translation_scale must be a positive number, got {scale}",
+                param="pose_translation_scale",
+            )
+        if not 0 < self.pose_failure_ratio <= 1:
+            raise ParameterError(
+                f"pose_failure_ratio must be in (0, 1], got {self.pose_failure_ratio}",
+                param="pose_failure_ratio",
+            )
+        for name in ("lidar_dropout", "lidar_holdout"):
+            if not 0 <= getattr(self, name) < 1:
+                raise ParameterError(
+                    f"{name} must be in [0, 1), got {getattr(self, name)}", param=name
+                )
+        if self.select_by not in SELECT_BY:
+            raise ParameterError(
+                f"unknown model selection {self.select_by!r}; choose one of {', '.join(SELECT_BY)}",
+                param="select_by",
+            )
 
     @property
     def metric_scale(self) -> bool:
@@ -285,7 +352,8 @@ class TrainConfig:
     selects self-supervised training (None: supervised, with ``loss`` on ground truth).
     ``lidar_encoder`` (``'none'``, ``'sfe'``, ``'dense'``) adds a LiDAR branch to the depth
     network (:mod:`sparsetools.train.model`; EffisDepth's layout, so ``input_mode`` must then
-    be ``'rgb'``).
+    be ``'rgb'``) that feeds the encoder levels of ``lidar_scales`` (default 1/2 .. 1/16;
+    configurations written before 0.4 lack the key and fed every level, 1 .. 1/16).
     """
 
     dataset: str
@@ -314,6 +382,7 @@ class TrainConfig:
     scale_range: tuple[float, float] = (1.0, 1.0)
     jitter: float = 0.2
     lidar_encoder: str = "none"
+    lidar_scales: tuple[int, ...] = DEFAULT_LIDAR_SCALES
     selfsup: SelfSupSettings | None = None
 
     #: Fields that may change when a run is resumed (they do not alter the maths).
@@ -327,6 +396,7 @@ class TrainConfig:
         d = asdict(self)
         d["crop"] = list(self.crop) if self.crop is not None else None
         d["scale_range"] = list(self.scale_range)
+        d["lidar_scales"] = list(self.lidar_scales)
         d["selfsup"] = self.selfsup.to_dict() if self.selfsup is not None else None
         return d
 
@@ -350,7 +420,9 @@ class TrainConfig:
         for required in ("dataset", "out_dir"):
             if required not in kw:
                 raise ParameterError(f"the training configuration lacks {required!r}")
-        for name in ("crop", "scale_range"):  # JSON lists -> the tuples the dataclass holds
+        if kw.get("lidar_encoder", "none") != "none":
+            kw.setdefault("lidar_scales", LIDAR_SCALES)  # before 0.4: every level
+        for name in ("crop", "scale_range", "lidar_scales"):  # JSON lists -> tuples
             if isinstance(kw.get(name), list):
                 kw[name] = tuple(kw[name])
         if isinstance(kw.get("scale_range"), tuple) and all(map(_is_real, kw["scale_range"])):
@@ -433,6 +505,7 @@ class TrainConfig:
                 f"{', '.join(LIDAR_ENCODERS)}",
                 param="lidar_encoder",
             )
+        check_lidar_scales(self.lidar_scales)
         if self.lidar_encoder != "none" and self.input_mode != "rgb":
             raise ParameterError(
                 f"--lidar-encoder {self.lidar_encoder} takes the sparse depth into its own "
@@ -457,6 +530,19 @@ class TrainConfig:
                     param="--input",
                 )
             self.selfsup.validate()
+            takes_lidar = self.lidar_encoder != "none" or self.input_mode in ("rgbd", "rgbdm")
+            for name in ("lidar_dropout", "lidar_holdout"):
+                if getattr(self.selfsup, name) > 0 and not takes_lidar:
+                    raise ParameterError(
+                        f"--{name.replace('_', '-')} acts on the depth network's LiDAR input, "
+                        f"and --input {self.input_mode} without --lidar-encoder has none",
+                        param=name,
+                    )
+            if self.selfsup.lidar_holdout > 0 and not self.selfsup.metric_scale:
+                raise ParameterError(
+                    "--lidar-holdout gives points to the sparse loss: add --sparse-loss",
+                    param="lidar_holdout",
+                )
             if self.final_layer:
                 raise ParameterError(
                     "the final adjustment layer works on metric depth; self-supervised "

@@ -20,7 +20,7 @@ import logging
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
@@ -149,6 +149,12 @@ class TrainingTask(Protocol):
         """The log line of an epoch's metrics row."""
         ...
 
+    def finish(self, state: TrainingState) -> dict:
+        """After the last epoch: the task's entries of the summary (``selected_by``: what
+        ``best.pt`` was chosen by; a self-supervised run's pose-failure flag), logging any
+        warning about the run."""
+        ...
+
 
 @dataclass(frozen=True)
 class TrainSummary:
@@ -172,6 +178,8 @@ class TrainSummary:
     threads: int
     #: the run's id (config.json, every checkpoint, every metrics.csv row)
     run_id: str | None = None
+    #: the task's entries (:meth:`TrainingTask.finish`)
+    extras: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         """Flat summary for the command line (``best_<metric>`` holds the best value)."""
@@ -187,6 +195,7 @@ class TrainSummary:
             "threads": self.threads,
             "seconds": self.seconds,
             "run_id": self.run_id,
+            **self.extras,
         }
 
 
@@ -453,4 +462,5 @@ def fit(
         seconds=round(time.perf_counter() - started, 2),
         threads=config.threads,
         run_id=run_id,
+        extras=task.finish(state),
     )

@@ -28,10 +28,15 @@ the prediction back.
 
 LiDAR encoder (``lidar_encoder``, EffisDepth's parallel-encoder layout; docs/sfe.md): with
 ``'sfe'`` the sparse depth map goes through a Sparse Feature Extractor
-(:class:`sparsetools.train.sfe.SparseFeatureExtractor`) whose five outputs have the widths and
-scales of the encoder levels; with ``'dense'`` through its dense twin of the same parameter
-count (:class:`~sparsetools.train.sfe.DenseLidarEncoder`). Level i's LiDAR features are ADDED
-to encoder level i's output, before it becomes the skip and before the max pooling into level
+(:class:`sparsetools.train.sfe.SparseFeatureExtractor`) whose outputs have the widths and
+scales of the encoder levels it feeds (``lidar_scales``, default 1/2 .. 1/16); with
+``'dense'`` through its dense twin of the same parameter count
+(:class:`~sparsetools.train.sfe.DenseLidarEncoder`). EffisDepth fuses at its ResNet levels,
+1/2 .. 1/32, never at full resolution; fused at scale 1 too (the layout before 0.4, which
+checkpoints without ``lidar_scales`` keep), each LiDAR pixel has a direct path to its own
+output pixel, and self-supervised training with the sparse loss learns to copy the input
+there instead of the scene (measured: docs/sfe.md). The LiDAR features of a level are ADDED
+to that encoder level's output, before it becomes the skip and before the max pooling into level
 i + 1: no layer of the U-Net changes and the LiDAR reaches the deeper levels and, through the
 skips, the decoder; the SFE's features are exactly zero away from the LiDAR sites, so there the
 image features pass unchanged. The map is padded like the image (bottom/right, zeros = empty).
@@ -62,13 +67,16 @@ from torch import nn
 from ..errors import ParameterError
 
 __all__ = [
+    "DEFAULT_LIDAR_SCALES",
     "INPUT_CHANNELS",
     "LIDAR_ENCODERS",
+    "LIDAR_SCALES",
     "OUTPUTS",
     "SPARSE_CHANNEL",
     "DepthCompletionUNet",
     "build_lidar_encoder",
     "build_model",
+    "check_lidar_scales",
     "disparity_to_depth",
     "model_inputs",
     "pad_to_stride",
@@ -86,6 +94,10 @@ OUTPUTS = ("depth", "disparity")
 LIDAR_ENCODERS = ("none", "sfe", "dense")
 #: Downsampling factor of the deepest level.
 STRIDE = 16
+#: Scales of the encoder levels (1 = full resolution), the levels a LiDAR branch may feed.
+LIDAR_SCALES = (1, 2, 4, 8, 16)
+#: Levels a LiDAR branch feeds by default: EffisDepth's, never full resolution.
+DEFAULT_LIDAR_SCALES = (2, 4, 8, 16)
 
 _RGB_MEAN = 0.45
 _RGB_STD = 0.225
@@ -139,6 +151,31 @@ def build_lidar_encoder(
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(torch.initial_seed() + LIDAR_SEED_OFFSETS[network])
         return cls(widths=tuple(widths), scales=tuple(scales), depth_channels=depth_channels)
+
+
+def check_lidar_scales(scales) -> tuple[int, ...]:
+    """``scales`` as a tuple of int if they are increasing values of :data:`LIDAR_SCALES`.
+
+    Raises
+    ------
+    ParameterError
+        Otherwise (naming ``lidar_scales``).
+    """
+    ok = isinstance(scales, (list, tuple)) and all(
+        isinstance(s, int) and not isinstance(s, bool) for s in scales
+    )
+    if (
+        not ok
+        or not scales
+        or list(scales) != sorted(set(scales))
+        or set(scales) - set(LIDAR_SCALES)
+    ):
+        raise ParameterError(
+            f"lidar_scales must be increasing values of {', '.join(map(str, LIDAR_SCALES))}, "
+            f"got {scales!r}",
+            param="lidar_scales",
+        )
+    return tuple(scales)
 
 
 def pad_to_stride(x: torch.Tensor, stride: int = 16) -> torch.Tensor:
@@ -269,8 +306,11 @@ class DepthCompletionUNet(nn.Module):
         ``output='disparity'``: start every scale at this depth (zero weights, matching bias)
         instead of torch's default initialisation (sigmoid about 0.5, i.e. about 0.2 m).
     lidar_encoder : {'none', 'sfe', 'dense'}
-        LiDAR branch whose level-i features are added to encoder level i (module docstring);
-        ``forward`` then needs ``lidar``.
+        LiDAR branch whose features are added to the encoder levels of ``lidar_scales``
+        (module docstring); ``forward`` then needs ``lidar``.
+    lidar_scales : tuple of int
+        Encoder levels the LiDAR branch feeds, by scale (increasing values of 1, 2, 4, 8,
+        16; default 2-16 as EffisDepth).
     """
 
     def __init__(
@@ -283,8 +323,10 @@ class DepthCompletionUNet(nn.Module):
         depth_range: tuple[float, float] = (0.1, 100.0),
         initial_depth: float | None = None,
         lidar_encoder: str = "none",
+        lidar_scales: tuple[int, ...] = DEFAULT_LIDAR_SCALES,
     ):
         super().__init__()
+        scales = check_lidar_scales(lidar_scales)
         if input_mode not in INPUT_CHANNELS:
             raise ParameterError(
                 f"unknown input mode {input_mode!r}; choose one of {sorted(INPUT_CHANNELS)}",
@@ -311,11 +353,16 @@ class DepthCompletionUNet(nn.Module):
         self.depth_range = (lo, hi)
         self.initial_depth = None if initial_depth is None else float(initial_depth)
         self.lidar_encoder = lidar_encoder
+        self.lidar_scales = scales
         c_in = INPUT_CHANNELS[input_mode]
         widths = [max(1, round(b * self.width / 32)) for b in BASE_WIDTHS]
         self.widths = tuple(widths)
+        # encoder level -> index of its LiDAR features (levels not fed are absent)
+        self._lidar_level = {LIDAR_SCALES.index(s): k for k, s in enumerate(scales)}
         self.lidar_branch = build_lidar_encoder(
-            lidar_encoder, widths=self.widths, scales=tuple(2**i for i in range(len(widths)))
+            lidar_encoder,
+            widths=tuple(widths[LIDAR_SCALES.index(s)] for s in scales),
+            scales=scales,
         )
 
         self.stem = nn.Sequential(
@@ -406,8 +453,8 @@ class DepthCompletionUNet(nn.Module):
             if i:
                 y = F.max_pool2d(y, 2)
             y = block(y)
-            if lidar_feats is not None:  # before the skip and the next pooling (docs/sfe.md)
-                y = y + lidar_feats[i]
+            if lidar_feats is not None and i in self._lidar_level:
+                y = y + lidar_feats[self._lidar_level[i]]  # before the skip and the pooling
             feats.append(y)
         y = feats[-1]
         stages = []
@@ -479,6 +526,8 @@ class DepthCompletionUNet(nn.Module):
             cfg["initial_depth"] = self.initial_depth
         if self.lidar_encoder != "none":  # older checkpoints have no such key: 'none'
             cfg["lidar_encoder"] = self.lidar_encoder
+            # older checkpoints have no such key: every level (LIDAR_SCALES)
+            cfg["lidar_scales"] = list(self.lidar_scales)
         return cfg
 
 
@@ -514,6 +563,8 @@ def build_model(config: dict) -> DepthCompletionUNet:
             depth_range=tuple(config.get("depth_range", (0.1, 100.0))),
             initial_depth=config.get("initial_depth"),
             lidar_encoder=str(config.get("lidar_encoder", "none")),
+            # before 0.4 every level was fed, and checkpoints did not say so
+            lidar_scales=tuple(config.get("lidar_scales", LIDAR_SCALES)),
         )
     except KeyError as exc:
         raise ParameterError(f"model configuration lacks {exc.args[0]!r}") from None

@@ -353,7 +353,12 @@ def format_eval_text(result: EvalResult, *, title: str = "") -> str:
         p = result.pose
         lines.append(
             f"{'pose ATE':<13} {p.ate_mean:>10.4f} m  +- {p.ate_std:.4f} "
-            f"({p.n_snippets} snippets of {p.snippet_length} frames)"
+            f"({p.n_snippets} snippets of {p.snippet_length} frames, per-snippet scaled; "
+            f"standing still: {p.ate_still_mean:.4f} m)"
+        )
+        lines.append(
+            f"{'unscaled':<13} {p.ate_unscaled_mean:>10.4f} m  +- {p.ate_unscaled_std:.4f} "
+            "(as predicted: the metric scale of a model with the sparse loss)"
         )
     return "\n".join(lines)
 

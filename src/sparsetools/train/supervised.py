@@ -72,6 +72,7 @@ class SupervisedTask:
             width=config.width,
             final_layer=config.final_layer,
             lidar_encoder=config.lidar_encoder,
+            lidar_scales=config.lidar_scales,
         ).to(device)
         return [self.model]
 
@@ -109,6 +110,9 @@ class SupervisedTask:
 
     def checkpoint_extras(self) -> dict:
         return {}
+
+    def finish(self, state: TrainingState) -> dict:
+        return {"selected_by": "gt"}
 
     def describe(self, row: dict) -> str:
         return f"train loss {row['train_loss']:.4g}, val RMSE {row['rmse']:.4g} m"

@@ -12,7 +12,12 @@ The true positions are those of ``inv(G_0) G_k``. Then, as monodepth2's ``comput
 - ``ATE = sqrt(sum_k |s p_k - g_k|^2) / N`` with N = 5 (monodepth2 divides the root of the sum
   by N rather than taking the root of the mean; the same is done here so numbers compare).
 
-The result is the mean and standard deviation over all snippets, in metres. Frames are fed at
+The result is the mean and standard deviation over all snippets, in metres. Two more figures
+come with it: the same ATE without the scale (``s = 1``: what a metric model, trained with the
+sparse loss, claims), and the ATE of a network that predicts no motion (``p = 0``, the
+"standing still" baseline): with the optimal scale no prediction does worse, so
+``ate_mean / ate_still_mean`` is 0 for a perfect pose network and 1 for one that explains
+none of the motion (training flags a run above ``pose_failure_ratio`` of it). Frames are fed at
 their full size (no crop), with their sparse depth when the pose network has a LiDAR branch. One difference from monodepth2's script: it chains the forward
 transforms themselves (``cam_to_world = cam_to_world @ T``, for prediction and ground truth
 alike), which gives the translations of the inverse motions rather than the camera positions;
@@ -47,6 +52,16 @@ class PoseAccuracy:
     n_snippets: int
     snippet_length: int
     n_sequences: int
+    #: without the per-snippet scale (metric models)
+    ate_unscaled_mean: float = float("nan")
+    ate_unscaled_std: float = float("nan")
+    #: of predicting no motion (the positions all at the origin)
+    ate_still_mean: float = float("nan")
+
+    @property
+    def still_ratio(self) -> float:
+        """``ate_mean / ate_still_mean``: 0 = perfect, 1 = no motion explained."""
+        return self.ate_mean / self.ate_still_mean if self.ate_still_mean > 0 else float("nan")
 
 
 def snippet_positions(transforms: list[np.ndarray]) -> np.ndarray:
@@ -69,12 +84,14 @@ def snippet_positions(transforms: list[np.ndarray]) -> np.ndarray:
     return np.array(out)
 
 
-def snippet_ate(predicted: np.ndarray, true: np.ndarray) -> float:
+def snippet_ate(predicted: np.ndarray, true: np.ndarray, *, scaled: bool = True) -> float:
     """monodepth2's ATE of one snippet: first frames aligned, optimal scale, sqrt(sum) / N.
 
     Parameters
     ----------
     predicted, true : (N, 3) float, camera positions
+    scaled : bool
+        Fit the least-squares scale (monodepth2); False: as predicted (metric models).
     """
     p = np.asarray(predicted, np.float64)
     g = np.asarray(true, np.float64)
@@ -82,7 +99,9 @@ def snippet_ate(predicted: np.ndarray, true: np.ndarray) -> float:
         raise ParameterError(f"need two (N, 3) trajectories of N >= 2, got {p.shape}, {g.shape}")
     p = p + (g[0] - p[0])
     denom = float(np.sum(p * p))
-    scale = float(np.sum(g * p)) / denom if denom > 0 else 0.0
+    scale = 1.0
+    if scaled:
+        scale = float(np.sum(g * p)) / denom if denom > 0 else 0.0
     return float(np.sqrt(np.sum((scale * p - g) ** 2)) / len(g))
 
 
@@ -136,7 +155,7 @@ def evaluate_pose(
         rgb = read_image(reader.rgb_path(i))  # in the dataset, or referenced
         return torch.from_numpy(rgb.astype(np.float32).transpose(2, 0, 1) / 255.0)
 
-    errors = []
+    errors, unscaled, still = [], [], []
     for run in runs:
         images = [frame(i) for i in run]
         lidar = [torch.from_numpy(frame_sparse(reader, i)) for i in run] if uses_lidar else []
@@ -158,11 +177,16 @@ def evaluate_pose(
             G0 = np.linalg.inv(poses[run[j]])
             true = np.array([(G0 @ poses[run[j + k]])[:3, 3] for k in range(SNIPPET_LENGTH)])
             errors.append(snippet_ate(pred, true))
-    e = np.array(errors)
+            unscaled.append(snippet_ate(pred, true, scaled=False))
+            still.append(snippet_ate(np.zeros_like(true), true, scaled=False))
+    e, u = np.array(errors), np.array(unscaled)
     return PoseAccuracy(
         ate_mean=float(e.mean()),
         ate_std=float(e.std()),
         n_snippets=len(e),
         snippet_length=SNIPPET_LENGTH,
         n_sequences=len(runs),
+        ate_unscaled_mean=float(u.mean()),
+        ate_unscaled_std=float(u.std()),
+        ate_still_mean=float(np.mean(still)),
     )

@@ -10,14 +10,28 @@ of their own, so the image networks start alike whatever the branches;
 carry all three frames' sparse depth), the sample order of epoch e from ``(seed, e)``, each
 triplet's augmentation from ``(seed, e, index)``, and the auto-mask's tie-breaking noise of
 step k from ``(seed, k)``; the SBM threshold is saved with the checkpoint. Validation after
-every epoch reports the validation loss, the photometric error and, when every validation
-frame has ground truth, the depth metrics -- per-image median-scaled for camera-only models,
-unscaled with the sparse loss. ``best.pt`` is the epoch with the lowest validation RMSE (with
-ground truth), else the lowest photometric error.
+every epoch reports the validation loss, the photometric error, the pose ATE when the
+validation frames have true poses (per-snippet scaled, unscaled, and that of standing still:
+:mod:`.pose_eval`) and, when every validation frame has ground truth, the depth metrics --
+per-image median-scaled for camera-only models, unscaled with the sparse loss. ``best.pt`` is
+the epoch with the lowest validation photometric error (``select_by='photometric'``, the
+default: no ground truth is read to choose it), or the lowest validation RMSE
+(``select_by='gt'``). A run whose last validation ATE is above ``pose_failure_ratio`` of the
+standing-still ATE is flagged as a pose failure (a warning in the log, ``pose_failure`` in
+the summary).
+
+Metric runs (with the sparse loss) start every pixel at :data:`METRIC_INITIAL_DEPTH` and
+scale the pose network's translation to match
+(:func:`~sparsetools.train.selfsup.pose_net.metric_translation_scale`). LiDAR input options
+against the shortcut of a LiDAR branch that learns to copy its input into the sparse loss:
+``lidar_dropout`` (an empty input map on a fraction of training batches) and
+``lidar_holdout`` (disjoint point sets for the input and the loss), both drawn from
+``(seed, step)`` (:func:`split_lidar`); validation feeds every point.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
@@ -40,9 +54,17 @@ from ..runtime import batches, progress_bar
 from .data import TripletDataset
 from .losses import selfsup_loss
 from .masks import StatisticsMask
-from .pose_net import PoseNet, source_transforms
+from .pose_eval import evaluate_pose
+from .pose_net import POSE_SCALE, PoseNet, metric_translation_scale, source_transforms
 
-__all__ = ["SelfSupervisedTask", "noise_generator", "validate_selfsup"]
+__all__ = [
+    "METRIC_INITIAL_DEPTH",
+    "SelfSupervisedTask",
+    "noise_generator",
+    "pose_translation_scale",
+    "split_lidar",
+    "validate_selfsup",
+]
 
 
 #: Initial depth of every pixel in runs with the sparse loss (metres).
@@ -51,20 +73,76 @@ METRIC_INITIAL_DEPTH = 10.0
 VALIDATION_STREAM = 2**31
 
 
+log = logging.getLogger(__name__)
+
+
+def _generator(seed: int, stream: int, step: int) -> torch.Generator:
+    state = np.random.SeedSequence([int(seed) % 2**32, stream, int(step)]).generate_state(1)[0]
+    return torch.Generator().manual_seed(int(state))
+
+
 def noise_generator(seed: int, step: int) -> torch.Generator:
     """The generator of the auto-mask noise of optimizer step ``step`` (CPU)."""
-    state = np.random.SeedSequence([int(seed) % 2**32, 104729, int(step)]).generate_state(1)[0]
-    return torch.Generator().manual_seed(int(state))
+    return _generator(seed, 104729, step)
+
+
+def pose_translation_scale(settings) -> float:
+    """The pose network's translation scale of a run (:class:`SelfSupSettings`): the one set,
+    else 0.01 for camera-only runs and :func:`metric_translation_scale` of
+    :data:`METRIC_INITIAL_DEPTH` for runs with the sparse loss."""
+    if settings.pose_translation_scale is not None:
+        return float(settings.pose_translation_scale)
+    if not settings.metric_scale:
+        return POSE_SCALE
+    return metric_translation_scale(METRIC_INITIAL_DEPTH, settings.depth_range)
+
+
+def split_lidar(
+    sparse: torch.Tensor, *, dropout: float, holdout: float, seed: int, step: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The LiDAR input and the sparse-loss target of training step ``step``.
+
+    Parameters
+    ----------
+    sparse : (B, 1, H, W) float, metres, 0 = empty
+    dropout : float
+        Probability that the whole batch's input is an empty map.
+    holdout : float
+        Probability that a point goes to the loss only (else to the input only).
+    seed, step : int
+        Draws from their own stream (not the auto-mask's), the same on every device.
+
+    Returns
+    -------
+    lidar_input, loss_target : (B, 1, H, W) float
+        ``sparse`` for both when ``dropout = holdout = 0``. With ``holdout`` the two have no
+        point in common and together hold every point of ``sparse``.
+    """
+    if dropout == 0 and holdout == 0:
+        return sparse, sparse
+    g = _generator(seed, 7793, step)
+    dropped = float(torch.rand((), generator=g)) < dropout
+    target = sparse
+    lidar_input = sparse
+    if holdout > 0:
+        held = (torch.rand(sparse.shape, generator=g) < holdout).to(sparse.device)
+        lidar_input = torch.where(held, torch.zeros_like(sparse), sparse)
+        target = torch.where(held, sparse, torch.zeros_like(sparse))
+    if dropped:
+        lidar_input = torch.zeros_like(sparse)
+    return lidar_input, target
 
 
 def _split_has_gt(dataset: TripletDataset) -> bool:
     return all(dataset.reader.row(t.target)["gt_path"] is not None for t in dataset.triplets)
 
 
-def _forward(depth_net, pose_net, batch, device):
+def _forward(depth_net, pose_net, batch, device, *, lidar_input=None):
+    """Disparities, the two transforms, and the target frame's sparse depth
+    (``lidar_input``: what the depth network gets instead of it)."""
     inputs = batch["inputs"].to(device)
     sparse = batch["sparse"].to(device)
-    disparities = depth_net.run(inputs[:, 1], sparse)
+    disparities = depth_net.run(inputs[:, 1], sparse if lidar_input is None else lidar_input)
     lidar = batch["sparse_frames"].to(device) if pose_net.uses_lidar else None
     transforms = source_transforms(pose_net, inputs[:, 0], inputs[:, 1], inputs[:, 2], lidar=lidar)
     return disparities, transforms, sparse
@@ -177,7 +255,13 @@ class SelfSupervisedTask:
         )
         _check_scales(config, self.train_set)
         self.with_metrics = _split_has_gt(self.val_set)
-        self.best_metric = "rmse" if self.with_metrics else "photometric"
+        if settings.select_by == "gt" and not self.with_metrics:
+            raise ParameterError(
+                f"--select-by gt chooses best.pt by the validation RMSE, but not every frame "
+                f"of split {config.val_split!r} has ground truth: use --select-by photometric",
+                param="select_by",
+            )
+        self.best_metric = "rmse" if settings.select_by == "gt" else "photometric"
         count = config.pictures if self.with_metrics else 0
         self.pictures = picture_indices(len(self.val_set), count)
         self.sbm = (
@@ -200,9 +284,12 @@ class SelfSupervisedTask:
             # metric runs start at a metric depth (see sparsetools.train.model)
             initial_depth=METRIC_INITIAL_DEPTH if settings.metric_scale else None,
             lidar_encoder=config.lidar_encoder,
+            lidar_scales=config.lidar_scales,
         ).to(device)
         self.pose_net = PoseNet(
-            width=settings.pose_width, lidar_encoder=settings.pose_lidar_encoder
+            width=settings.pose_width,
+            lidar_encoder=settings.pose_lidar_encoder,
+            translation_scale=pose_translation_scale(settings),
         ).to(device)
         return [self.depth_net, self.pose_net]
 
@@ -213,17 +300,24 @@ class SelfSupervisedTask:
             self.sbm.threshold = ckpt.sbm_threshold
 
     def step(self, batch: dict, state: TrainingState) -> StepResult:
-        config = self.config
-        disparities, transforms, sparse = _forward(
-            self.depth_net, self.pose_net, batch, self.device
+        config, settings = self.config, self.config.selfsup
+        lidar_input, target = split_lidar(
+            batch["sparse"].to(self.device),
+            dropout=settings.lidar_dropout,
+            holdout=settings.lidar_holdout,
+            seed=config.seed,
+            step=state.step,
+        )
+        disparities, transforms, _ = _forward(
+            self.depth_net, self.pose_net, batch, self.device, lidar_input=lidar_input
         )
         terms = selfsup_loss(
             disparities,
             batch["frames"].to(self.device),
             batch["K"].to(self.device),
             transforms,
-            config.selfsup,
-            sparse=cap_depth(sparse, config.max_depth),
+            settings,
+            sparse=cap_depth(target, config.max_depth),
             sbm=self.sbm,
             update_sbm=True,
             generator=noise_generator(config.seed, state.step),
@@ -244,6 +338,13 @@ class SelfSupervisedTask:
             progress=progress,
         )
         means = aggregate_metrics(val.per_image) if self.with_metrics else {}
+        pose = evaluate_pose(
+            self.pose_net,
+            config.dataset,
+            split=config.val_split,
+            device=self.device,
+            batch_size=config.batch_size,
+        )
         columns = {
             "train_photometric": state.epoch_mean("photometric"),
             "train_reprojection": state.epoch_mean("reprojection"),
@@ -255,6 +356,9 @@ class SelfSupervisedTask:
             **{k: means.get(k, math.nan) for k in METRIC_NAMES},
             "val_images": means.get("n_images", len(self.val_set)),
             "sbm_threshold": math.nan if sbm is None or sbm.threshold is None else sbm.threshold,
+            "ate": math.nan if pose is None else pose.ate_mean,
+            "ate_unscaled": math.nan if pose is None else pose.ate_unscaled_mean,
+            "ate_still": math.nan if pose is None else pose.ate_still_mean,
         }
         return Validation(columns, val.pictures)
 
@@ -263,7 +367,32 @@ class SelfSupervisedTask:
         return {"pose_model": self.pose_net, "sbm_threshold": threshold}
 
     def describe(self, row: dict) -> str:
-        return (
+        text = (
             f"train loss {row['train_loss']:.4g}, photometric {row['train_photometric']:.4g}, "
             f"val {self.best_metric} {row[self.best_metric]:.4g}"
         )
+        if math.isfinite(row.get("ate", math.nan)):
+            text += f", ATE {row['ate']:.3g} m (standing still {row['ate_still']:.3g} m)"
+        return text
+
+    def finish(self, state: TrainingState) -> dict:
+        extras: dict = {"selected_by": self.config.selfsup.select_by}
+        row = state.history[-1] if state.history else {}
+        ate, still = row.get("ate", math.nan), row.get("ate_still", math.nan)
+        if math.isfinite(ate) and still > 0:
+            ratio = ate / still
+            limit = self.config.selfsup.pose_failure_ratio
+            extras["pose_ate_ratio"] = round(ratio, 4)
+            extras["pose_failure"] = bool(ratio > limit)
+            if ratio > limit:
+                log.warning(
+                    "pose failure: the last validation ATE (%.3g m) is %.0f %% of that of "
+                    "predicting no motion (%.3g m; limit %.0f %%): the pose network has not "
+                    "learnt the motion, so the photometric loss taught the depth little "
+                    "(docs/selfsup.md)",
+                    ate,
+                    100 * ratio,
+                    still,
+                    100 * limit,
+                )
+        return extras
