@@ -6,7 +6,7 @@ PIP := $(PY) -m pip
 STAMP := $(VENV)/.setup-done
 TORCH_VERSION ?= 2.13.0
 
-.PHONY: setup demo test lint bench clean sample-data docs-pictures
+.PHONY: setup demo test lint bench clean sample-data docs-pictures acceptance
 
 setup: $(STAMP)
 
@@ -36,6 +36,11 @@ lint: setup
 
 bench: setup
 	$(PY) benchmarks/run_all.py
+
+# The papers' claims on the bundled training, every model with two seeds (about 1.5 hours on
+# 2 cores; resumable): benchmarks/results/acceptance_claims.json (docs/selfsup.md#acceptance).
+acceptance: setup
+	$(PY) benchmarks/acceptance_claims.py --out out/acceptance_claims
 
 sample-data: setup
 	$(VENV)/bin/sparsetools synth-scene -o sample_data/synthetic --seed 0 --frames 3 --overwrite

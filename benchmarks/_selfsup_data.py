@@ -61,6 +61,8 @@ class VideoSettings:
     beams: tuple[int, ...] = (4, 16)
     night_brightness: float | None = None
     seed: int = 100
+    #: keep every K-th azimuth step of the N-beam scans before projecting (1: all)
+    azimuth_keep: int = 1
 
 
 # -- where the commands put things (the only place that knows the folder layouts) ----------------
@@ -106,7 +108,7 @@ def link(src: Path, dst: Path) -> None:
 
 # -- data -------------------------------------------------------------------------------------------
 def prepare_datasets(
-    out: Path, settings: VideoSettings, datasets: dict[str, tuple[str, int]]
+    out: Path, settings: VideoSettings, datasets: dict[str, tuple[str, int]], *, thin=None
 ) -> dict[str, Path]:
     """Videos, N-beam sparse depth, (night frames,) and one dataset per entry of ``datasets``.
 
@@ -117,6 +119,9 @@ def prepare_datasets(
     settings : VideoSettings
     datasets : dict
         Dataset key -> (images: 'rgb' or 'night', beam count of its sparse depth).
+    thin : callable, optional
+        ``thin(src, dst, settings.azimuth_keep)`` writes thinned copies of the N-beam scans
+        (used when ``azimuth_keep > 1``).
 
     Returns
     -------
@@ -140,8 +145,12 @@ def prepare_datasets(
                 f.beams[beams[0]].parent,
             )  # fmt: skip
         for n in beams:
+            scans = f.beams[n]
+            if settings.azimuth_keep > 1:
+                scans = out / f"beams_az{settings.azimuth_keep}" / name / f"n{n}"
+                thin(f.beams[n], scans, settings.azimuth_keep)
             sparsetools(
-                "project", f.beams[n], "--calib", f.calib, "--image", f.images, "-o", f.sparse[n]
+                "project", scans, "--calib", f.calib, "--image", f.images, "-o", f.sparse[n]
             )
         if night:
             b = settings.night_brightness
