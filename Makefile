@@ -12,15 +12,15 @@ setup: $(STAMP)
 
 $(STAMP): pyproject.toml
 	@if [ "$$(id -u)" = "0" ] && ! ldconfig -p 2>/dev/null | grep -q libusb-1.0; then \
-		echo ">> installing libusb-1.0-0 (needed by Open3D)"; \
+		echo ">> installing libusb-1.0-0 (needed by Open3D, the open3d extra: ICP)"; \
 		(apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libusb-1.0-0) \
-			|| echo ">> warning: could not install libusb-1.0-0; PCD/PLY I/O will be unavailable"; \
+			|| echo ">> warning: could not install libusb-1.0-0; ICP (accumulate --icp) will be unavailable"; \
 	fi
 	test -x $(PY) || python3 -m venv $(VENV)
 	$(PIP) install -q --upgrade pip
 	# torch first, pinned, so that no CUDA build is pulled in by the extras below
 	$(PIP) install -q torch==$(TORCH_VERSION)
-	$(PIP) install -q -e ".[train,dask,dev,viz]"
+	$(PIP) install -q -e ".[train,dask,dev,viz,open3d]"
 	touch $(STAMP)
 
 demo: setup

@@ -7,7 +7,8 @@ compared, in alternating runs; every line states the machine's load.
 1. ``project_points`` on real KITTI object frames (000001: 120,268 points to 1242x375;
    000000: 115,384 points to 1224x370), both of its exact implementations (the numpy pass a
    process starts with, the compiled numba loop it switches to after
-   ``COMPILED_AFTER_POINTS``), against
+   ``COMPILED_AFTER_POINTS`` or at once when numba is loaded: ``backend="numpy"`` and
+   ``backend="compiled"``), against
    (a) monodepth2's ``generate_depth_map`` algorithm written with numpy (Python loop over the
        pixels hit by several points, as the original does), and a fully vectorised numpy
        z-buffer (``np.minimum.at``), the fastest plain-numpy variant;
@@ -30,6 +31,7 @@ import os
 import subprocess
 import sys
 import tempfile
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -100,7 +102,6 @@ def open3d_setup(points, calib):
 def bench_frame(stem: str) -> None:
     from sparsetools.io.calib import load_calibration
     from sparsetools.io.kitti import read_velodyne_bin
-    from sparsetools.ops import projection
     from sparsetools.ops.projection import project_points
 
     points = read_velodyne_bin(REAL / "velodyne" / f"{stem}.bin")
@@ -109,27 +110,24 @@ def bench_frame(stem: str) -> None:
     W, H = calib.size
     tag = f"{stem}: {points.shape[0]} pts -> {W}x{H}"
 
-    def ours():
-        return project_points(points, calib)
+    def ours(backend="auto"):
+        return project_points(points, calib, backend=backend)
 
-    def ours_md2():
-        return project_points(points[points[:, 0] >= 0], calib, pixel_offset=-1)
+    def ours_md2(backend="auto"):
+        return project_points(points[points[:, 0] >= 0], calib, pixel_offset=-1, backend=backend)
 
     md2 = lambda: monodepth2_numpy(points, M, W, H)  # noqa: E731
     npy = lambda: numpy_minimum_at(points, M, W, H)  # noqa: E731
     o3d_run = open3d_setup(points, calib)
-    choose = projection._use_compiled
-    for label, compiled in (("numpy pass", False), ("compiled", True)):
-        # Pin the implementation (the process would switch after COMPILED_AFTER_POINTS).
-        projection._use_compiled = lambda n, c=compiled: c
-        ours()  # the compiled one: load the numba cache outside the timing
-        compare_interleaved(f"{tag} [{label}] vs monodepth2 (numpy+loop)", ours_md2, md2,
+    for label, backend in (("numpy pass", "numpy"), ("compiled", "compiled")):
+        run, run_md2 = partial(ours, backend), partial(ours_md2, backend)
+        run()  # the compiled one: load the numba cache outside the timing
+        compare_interleaved(f"{tag} [{label}] vs monodepth2 (numpy+loop)", run_md2, md2,
                             reference_name="md2", repeat=5)  # fmt: skip
-        compare_interleaved(f"{tag} [{label}] vs numpy minimum.at", ours, npy,
+        compare_interleaved(f"{tag} [{label}] vs numpy minimum.at", run, npy,
                             reference_name="numpy", repeat=15)  # fmt: skip
-        compare_interleaved(f"{tag} [{label}] vs Open3D project_to_depth_image", ours, o3d_run,
+        compare_interleaved(f"{tag} [{label}] vs Open3D project_to_depth_image", run, o3d_run,
                             reference_name="open3d", repeat=31)  # fmt: skip
-    projection._use_compiled = choose
 
     a = ours()
     md2 = md2().astype(np.float32)

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import sparsetools as st
-from sparsetools.errors import DependencyError, FormatError, OutputError
+from sparsetools.errors import FormatError, OutputError
 from sparsetools.io.atomic import (
     TMP_PREFIX,
     atomic_path,
@@ -97,7 +97,7 @@ def test_real_nuscenes_lidar(nuscenes_demo):
     assert set(np.unique(pts[:, 4]).astype(int)) <= set(range(32))
 
 
-# -- .npy and Open3D formats ------------------------------------------------------------------------
+# -- .npy, PCD and PLY formats ---------------------------------------------------------------------
 def test_npy_round_trip_and_bad_npy(tmp_path):
     pts = _cloud(20, 5)
     write_points(tmp_path / "a.npy", pts)
@@ -111,7 +111,7 @@ def test_npy_round_trip_and_bad_npy(tmp_path):
 
 
 @pytest.mark.parametrize("suffix", [".pcd", ".ply"])
-def test_open3d_round_trip_keeps_attributes(tmp_path, suffix):
+def test_pcd_ply_round_trip_keeps_attributes(tmp_path, suffix):
     pts = _cloud(50, 4)
     write_points(tmp_path / f"a{suffix}", pts)
     back = read_points(tmp_path / f"a{suffix}")
@@ -119,32 +119,13 @@ def test_open3d_round_trip_keeps_attributes(tmp_path, suffix):
     np.testing.assert_array_equal(back, pts)
 
 
-def test_open3d_corrupt_and_empty(tmp_path):
+def test_pcd_ply_corrupt_and_empty(tmp_path):
     (tmp_path / "e.ply").write_bytes(b"")
     with pytest.raises(FormatError, match="empty"):
         read_points(tmp_path / "e.ply")
     (tmp_path / "c.ply").write_bytes(b"ply\nformat nonsense\n")
     with pytest.raises(FormatError):
         read_points(tmp_path / "c.ply")
-
-
-def test_missing_open3d_names_the_fix(monkeypatch, tmp_path):
-    import builtins
-
-    real_import = builtins.__import__
-
-    def fake_import(name, *args, **kwargs):
-        if name == "open3d":
-            raise ImportError("libusb-1.0.so.0: cannot open shared object file")
-        return real_import(name, *args, **kwargs)
-
-    monkeypatch.setattr(builtins, "__import__", fake_import)
-    (tmp_path / "a.ply").write_bytes(
-        b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\n"
-        b"property float y\nproperty float z\nend_header\n" + np.zeros(3, "<f4").tobytes()
-    )
-    with pytest.raises(DependencyError, match="apt-get install -y libusb-1.0-0"):
-        read_points(tmp_path / "a.ply")
 
 
 def test_import_is_light():

@@ -137,27 +137,67 @@ def test_numpy_pass_equals_compiled_loop_on_real_kitti(kitti_clouds, real_dir):
         assert rows.size < 1.01 * assert_same_zbuffer(pts, calib) + 100
 
 
-def test_project_points_is_the_same_before_and_after_switching_to_the_compiled_loop(
-    monkeypatch,
-):
+def test_project_points_gives_the_same_map_with_every_backend():
     rng = np.random.default_rng(5)
     calib = kitti_calib()
     pts = border_cloud(rng, calib, 30000, 0.1, np.inf).astype(np.float32)
-    monkeypatch.setattr(projection, "_use_compiled", lambda n: False)
-    first = projection.project_points(pts, calib, return_count=True)
-    monkeypatch.setattr(projection, "_use_compiled", lambda n: True)
-    second = projection.project_points(pts, calib, return_count=True)
-    assert first[1] == second[1] and first[0].tobytes() == second[0].tobytes()
+    for kw in ({}, {"pixel_offset": -1, "min_depth": 0.0}, {"max_depth": 20.0}):
+        maps = [
+            projection.project_points(pts, calib, return_count=True, backend=b, **kw)
+            for b in projection.BACKENDS
+        ]
+        assert maps[0][1] > 1000
+        for depth, n_in in maps[1:]:
+            assert n_in == maps[0][1] and depth.tobytes() == maps[0][0].tobytes()
 
 
-def test_the_switch_happens_after_enough_points(monkeypatch):
+def test_an_unknown_backend_is_refused():
+    from sparsetools.errors import ParameterError
+
+    with pytest.raises(ParameterError, match="backend"):
+        projection.project_points(np.zeros((1, 3)), kitti_calib(), backend="cuda")
+
+
+def test_auto_uses_the_compiled_kernel_once_numba_is_loaded(monkeypatch):
     import sys
 
-    monkeypatch.delitem(sys.modules, "sparsetools.ops._projection_kernels", raising=False)
+    monkeypatch.setattr(projection, "_points_projected", 0)
+    monkeypatch.setattr(projection, "COMPILED_AFTER_POINTS", 1000)
+    monkeypatch.setitem(sys.modules, "numba", sys.modules.get("numba", object()))
+    assert projection._use_compiled(10)  # loaded already: no points need to pay for it
+    assert not projection._use_compiled(10**9, "numpy")
+    assert projection._use_compiled(1, "compiled")
+
+
+def test_the_switch_happens_after_enough_points_when_numba_is_not_loaded(monkeypatch):
+    import sys
+
+    monkeypatch.delitem(sys.modules, "numba", raising=False)
     monkeypatch.setattr(projection, "_points_projected", 0)
     monkeypatch.setattr(projection, "COMPILED_AFTER_POINTS", 1000)
     assert not projection._use_compiled(600)
     assert projection._use_compiled(600)  # 1200 > 1000 projected
+
+
+def test_a_fresh_process_projects_without_loading_numba_and_auto_switches_when_it_is(tmp_path):
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, numpy as np\n"
+        "from sparsetools.calibration import Calibration\n"
+        "from sparsetools.ops.projection import project_points\n"
+        "K = np.array([[100.0, 0, 8], [0, 100.0, 6], [0, 0, 1]])\n"
+        "c = Calibration(K=K, T_cam_from_sensor=np.eye(4), width=16, height=12)\n"
+        "pts = np.array([[0.0, 0.0, 5.0], [0.1, 0.0, 4.0]])\n"
+        "a = project_points(pts, c)\n"
+        "print('numba' in sys.modules)\n"
+        "import numba  # noqa: F401\n"
+        "b = project_points(pts, c)\n"
+        "print('sparsetools.ops._projection_kernels' in sys.modules, a.tobytes() == b.tobytes())\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["False", "True", "True"]
 
 
 # -- reading clouds, encoding depth PNGs --------------------------------------------------------

@@ -15,6 +15,7 @@ import numpy as np
 from ..errors import FormatError
 from .atomic import atomic_path
 from .kitti import read_velodyne_bin
+from .pcd import parse_pcd_header, pcd_dtype
 from .sidecar import check_field, read_json_document, read_regular_file
 
 __all__ = [
@@ -38,24 +39,7 @@ RADAR_SIZES = (4, 4, 4, 1, 2, 4, 4, 4, 4, 4, 1, 1, 1, 1, 1, 1, 1, 1)
 RADAR_TYPES = tuple("F F F I I F F F F F I I I I I I I I".split())
 
 
-def _pcd_dtype(fields, sizes, types) -> np.dtype:
-    codes = {
-        ("F", 4): "<f4",
-        ("F", 8): "<f8",
-        ("I", 1): "i1",
-        ("I", 2): "<i2",
-        ("I", 4): "<i4",
-        ("U", 1): "u1",
-        ("U", 2): "<u2",
-        ("U", 4): "<u4",
-    }
-    try:
-        return np.dtype([(f, codes[(t, s)]) for f, s, t in zip(fields, sizes, types, strict=True)])
-    except KeyError as exc:
-        raise FormatError(f"unsupported PCD field type/size {exc.args[0]}") from exc
-
-
-RADAR_DTYPE = _pcd_dtype(RADAR_FIELDS, RADAR_SIZES, RADAR_TYPES)
+RADAR_DTYPE = pcd_dtype(RADAR_FIELDS, RADAR_SIZES, RADAR_TYPES)
 
 
 def read_lidar_pcd_bin(path: str | os.PathLike, *, drop_non_finite_rows: bool = True) -> np.ndarray:
@@ -103,28 +87,6 @@ def _read_radar_bytes(path: Path) -> bytes:
         raise FormatError(f"{path}: no such radar file") from exc
 
 
-def parse_pcd_header(data: bytes, path: Path) -> tuple[dict[str, list[str]], int]:
-    header: dict[str, list[str]] = {}
-    pos = 0
-    while True:
-        end = data.find(b"\n", pos)
-        if end < 0:
-            raise FormatError(f"{path}: PCD header has no DATA line (truncated or not a PCD)")
-        try:
-            line = data[pos:end].decode("ascii").strip()
-        except UnicodeDecodeError as exc:
-            raise FormatError(f"{path}: not a PCD file (binary data in the header)") from exc
-        pos = end + 1
-        if not line or line.startswith("#"):
-            continue
-        key, *values = line.split()
-        header[key.upper()] = values
-        if key.upper() == "DATA":
-            return header, pos
-        if len(header) > 32:
-            raise FormatError(f"{path}: not a PCD file (no DATA line in the header)")
-
-
 def read_radar_pcd(
     path: str | os.PathLike, *, filters: RadarFilter | None = RadarFilter()
 ) -> np.ndarray:
@@ -148,7 +110,7 @@ def read_radar_pcd(
     header, offset = parse_pcd_header(data, path)
     try:
         fields = header["FIELDS"]
-        dtype = _pcd_dtype(fields, [int(s) for s in header["SIZE"]], header["TYPE"])
+        dtype = pcd_dtype(fields, [int(s) for s in header["SIZE"]], header["TYPE"])
         width, height = int(header["WIDTH"][0]), int(header["HEIGHT"][0])
         n = int(header["POINTS"][0]) if "POINTS" in header else width * height
     except (KeyError, ValueError, IndexError) as exc:

@@ -59,7 +59,11 @@ def _import_open3d():
         import open3d as o3d
     except ImportError as exc:
         msg = str(exc)
-        hint = "apt-get install -y libusb-1.0-0" if "libusb" in msg else "pip install open3d"
+        hint = (
+            "apt-get install -y libusb-1.0-0"
+            if "libusb" in msg
+            else "pip install 'sparsetools[open3d]' (Open3D is an optional extra)"
+        )
         raise DependencyError(
             f"ICP needs Open3D, which cannot be imported ({msg}): {hint}"
         ) from exc
