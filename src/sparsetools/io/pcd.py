@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FormatError
-from .atomic import atomic_path
+from .cloud_text import parse_ascii_values, write_header_and_rows
 
 __all__ = ["PcdHeader", "parse_pcd_header", "pcd_dtype", "read_pcd", "read_pcd_header", "write_pcd"]
 
@@ -226,15 +226,10 @@ def _read_ascii(data: bytes, h: PcdHeader, dtype: np.dtype, path: Path) -> np.nd
         cells = table[:, col : col + count]
         col += count
         try:
-            if target.kind == "f":
-                values = cells.astype(np.float64).astype(target)
-            elif name in ("rgb", "rgba"):  # PCL writes packed colours as integers here
+            if name in ("rgb", "rgba") and target.kind != "f":  # PCL may write these as floats
                 values = cells.astype(np.float64).astype(np.uint32).astype(target)
             else:
-                values = cells.astype(np.int64 if target.kind == "i" else np.uint64)
-                if (values != values.astype(target)).any():
-                    raise ValueError(f"{name} value beyond its {target} type")
-                values = values.astype(target)
+                values = parse_ascii_values(cells, target)
         except (ValueError, OverflowError) as exc:
             raise FormatError(f"{path}: ascii PCD field {name!r}: {exc}") from exc
         rec[name] = values if count > 1 else values[:, 0]
@@ -263,17 +258,11 @@ def write_pcd(
     The header is the one Open3D writes (``VIEWPOINT 0 0 0 1 0 0 0``, ``HEIGHT 1``), so a
     cloud of x, y, z (and intensity) is the same file byte for byte.
     """
-    points = np.ascontiguousarray(points, dtype="<f4")
-    n, c = points.shape
-    if len(names) != c or len(set(names)) != c:
-        raise FormatError(f"{path}: {c} columns need {c} distinct field names, got {names}")
+    n, c = np.shape(points)
     header = (
         "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\n"
         f"FIELDS {' '.join(names)}\nSIZE {' '.join(['4'] * c)}\nTYPE {' '.join(['F'] * c)}\n"
         f"COUNT {' '.join(['1'] * c)}\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\n"
         f"POINTS {n}\nDATA binary\n"
     )
-    with atomic_path(Path(path), overwrite=overwrite) as tmp:
-        with open(tmp, "wb") as fh:
-            fh.write(header.encode("ascii"))
-            fh.write(points.tobytes())
+    write_header_and_rows(path, header, points, names, overwrite=overwrite)

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FormatError
-from .atomic import atomic_path
+from .cloud_text import parse_ascii_values, write_header_and_rows
 
 __all__ = ["PlyElement", "PlyHeader", "read_ply_header", "read_ply_vertices", "write_ply"]
 
@@ -179,13 +179,7 @@ def _read_ascii(data, h: PlyHeader, before, dtype: np.dtype, path: Path) -> np.n
     for i, name in enumerate(dtype.names):
         target = rec.dtype[name]
         try:
-            if target.kind == "f":
-                rec[name] = table[:, i].astype(np.float64)
-            else:
-                values = table[:, i].astype(np.int64)
-                if (values != values.astype(target)).any():
-                    raise ValueError(f"value beyond its {target} type")
-                rec[name] = values
+            rec[name] = parse_ascii_values(table[:, i], target)
         except (ValueError, OverflowError) as exc:
             raise FormatError(f"{path}: ascii PLY property {name!r}: {exc}") from exc
     return rec
@@ -210,15 +204,9 @@ def write_ply(
     overwrite : bool
         Replace an existing file (the toolkit's own outputs only; see ``atomic_path``).
     """
-    points = np.ascontiguousarray(points, dtype="<f4")
-    n, c = points.shape
-    if len(names) != c or len(set(names)) != c:
-        raise FormatError(f"{path}: {c} columns need {c} distinct property names, got {names}")
+    n, _ = np.shape(points)
     header = (
         "ply\nformat binary_little_endian 1.0\ncomment Created by sparsetools\n"
         f"element vertex {n}\n" + "".join(f"property float {p}\n" for p in names) + "end_header\n"
     )
-    with atomic_path(Path(path), overwrite=overwrite) as tmp:
-        with open(tmp, "wb") as fh:
-            fh.write(header.encode("ascii"))
-            fh.write(points.tobytes())
+    write_header_and_rows(path, header, points, names, overwrite=overwrite)
