@@ -27,19 +27,22 @@ Claims (``--claims``, default all that are implemented):
 - ``effisdepth_t2``: EffisDepth Table 2, AbsRel M (0.110) > M+L (0.105) > M+L+SFE in depth
   (0.076), metric and median-scaled; with the probes of issue 24: M+L with monodepth2's pose
   translation scale 0.01 (the constant before the fix), and the SFE fused at full resolution
-  too (the layout before the fix), with LiDAR dropout, and with disjoint point sets (holdout).
+  too (the layout before the fix), with LiDAR dropout, with disjoint point sets (holdout), and
+  M+L with the 4 beams unthinned (5x the density).
 - ``effisdepth_t3``: EffisDepth Table 3, AbsRel falls with beams 1 -> 2 -> 3 -> 4 -> 16
   (0.091, 0.087, 0.084, 0.073, 0.064), with the M+L+SFE model.
 - ``rnw_night``: RNW night, camera only vs + MCIE + SBM (median-scaled).
 - ``ultradepth_t2``: UltraDepth Table 2, supervised early fusion rgb (RMSE 3.59) vs rgbd (1.21,
   -66 %) vs rgbdm (1.44) with 64 beams, and with 16, on the same videos' FULL scans (not
   thinned: UltraDepth uses KITTI's own LiDAR); evaluated on the dense GT and on KITTI-like GT
-  (the dense GT at the pixels a 64-beam scan hits, inside the Garg crop).
+  (the dense GT at the pixels a 64-beam scan hits, inside the Garg crop); probes: camera only
+  and rgbd with 4x the epochs.
 - ``radar_t2``: the radar paper's Tables 2 and 6 in miniature: the same supervised model with
   raw radar (5 sweeps), height-extended radar, JBF radar (sigma_s 25, sigma_r 10, threshold
   0.05) and JBF radar + confidence (``--input rgbdc``), on single-frame synthetic streets
   (``synth-scene --frames``, which writes nuScenes-format radar) at 416x128, evaluated on the
-  projected 64-beam LiDAR (METHODS.md section 12 has the paper's figures).
+  projected 64-beam LiDAR (METHODS.md section 12 has the paper's figures); probes: camera only
+  on the same frames, and camera only and JBF with 4x the epochs.
 
 Runs are resumable (finished runs and evaluations are kept under ``--out``); two run at a time
 with one torch thread each (CPU results do not depend on it beyond the thread count, which is
@@ -88,6 +91,8 @@ class Model:
     paper_rmse: float | None = None
     #: other datasets (same frames and splits, other ground truth) to evaluate on: key -> flags
     also: tuple = ()
+    #: epochs when not the claim's default (a probe of under-training)
+    epochs: int | None = None
 
 
 SFE = ("--input", "rgb", "--lidar-encoder", "sfe", "--sparse-loss", "silog")
@@ -117,6 +122,12 @@ CLAIMS: dict[str, tuple[Model, ...]] = {
             (*SFE, "--lidar-dropout", "0.5"),
         ),
         Model("MLS_hold", "probe: M+L+SFE, holdout 0.5", "day4", (*SFE, "--lidar-holdout", "0.5")),
+        Model(
+            "ML_full4",
+            "probe: M+L, 4 beams at full azimuth resolution (5x the density)",
+            "full4",
+            ("--input", "rgb", "--sparse-loss", "silog"),
+        ),
     ),
     "effisdepth_t3": tuple(
         # 4 beams is Table 2's M+L+SFE run (the same model on the same data)
@@ -137,24 +148,41 @@ CLAIMS: dict[str, tuple[Model, ...]] = {
     ),
 }
 KITTI_GT = (("kitti_gt", ("--garg-crop",)),)
-CLAIMS["ultradepth_t2"] = tuple(
-    Model(
-        name,
-        label,
-        ds,
-        ("--input", mode),
-        paper,
-        supervised=True,
-        paper_rmse=rmse,
-        also=KITTI_GT,
-    )
-    for name, label, ds, mode, paper, rmse in (
-        ("U_rgb", "camera only (rgb)", "full64", "rgb", 0.113, 3.59),
-        ("U_rgbd64", "rgbd, 64 beams", "full64", "rgbd", 0.0445, 1.21),
-        ("U_rgbdm64", "rgbdm, 64 beams", "full64", "rgbdm", 0.0422, 1.44),
-        ("U_rgbd16", "rgbd, 16 beams", "full16", "rgbd", None, None),
-        ("U_rgbdm16", "rgbdm, 16 beams", "full16", "rgbdm", None, None),
-    )
+CLAIMS["ultradepth_t2"] = (
+    *(
+        Model(
+            name,
+            label,
+            ds,
+            ("--input", mode),
+            paper,
+            supervised=True,
+            paper_rmse=rmse,
+            also=KITTI_GT,
+        )
+        for name, label, ds, mode, paper, rmse in (
+            ("U_rgb", "camera only (rgb)", "full64", "rgb", 0.113, 3.59),
+            ("U_rgbd64", "rgbd, 64 beams", "full64", "rgbd", 0.0445, 1.21),
+            ("U_rgbdm64", "rgbdm, 64 beams", "full64", "rgbdm", 0.0422, 1.44),
+            ("U_rgbd16", "rgbd, 16 beams", "full16", "rgbd", None, None),
+            ("U_rgbdm16", "rgbdm, 16 beams", "full16", "rgbdm", None, None),
+        )
+    ),
+    *(
+        Model(
+            name,
+            f"probe: {label}, 32 epochs (4x)",
+            "full64",
+            ("--input", mode),
+            supervised=True,
+            also=KITTI_GT,
+            epochs=32,
+        )
+        for name, mode, label in (
+            ("U_rgb_e32", "rgb", "camera only"),
+            ("U_rgbd64_e32", "rgbd", "rgbd, 64 beams"),
+        )
+    ),
 )
 CLAIMS["radar_t2"] = tuple(
     Model(name, label, ds, ("--input", mode), paper, supervised=True, paper_rmse=rmse)
@@ -163,6 +191,13 @@ CLAIMS["radar_t2"] = tuple(
         ("R_he", "height-extended (DORNradar: 0.109)", "radar_he", "rgbd", 0.109, 5.191),
         ("R_jbf", "JBF (DORNradar: 0.104)", "radar_jbf", "rgbd", 0.104, 5.228),
         ("R_jbfc", "JBF + confidence (RCDPT: 0.087)", "radar_jbf", "rgbdc", 0.087, 4.735),
+        ("R_rgb", "probe: camera only, same frames", "radar_raw", "rgb", None, None),
+    )
+) + tuple(
+    Model(name, label, ds, ("--input", mode), supervised=True, epochs=32)
+    for name, label, ds, mode in (
+        ("R_rgb_e32", "probe: camera only, 32 epochs (4x)", "radar_raw", "rgb"),
+        ("R_jbf_e32", "probe: JBF, 32 epochs (4x)", "radar_jbf", "rgbd"),
     )
 )
 #: orderings the papers report: (claim, better model, worse model, metric, scaled?)
@@ -179,6 +214,7 @@ ORDERINGS = (
     ("ultradepth_t2", "U_rgbd64", "U_rgb", "rmse", False),
     ("ultradepth_t2", "U_rgbd64", "U_rgb", "rmse@kitti_gt", False),
     ("ultradepth_t2", "U_rgbdm64", "U_rgb", "rmse", False),
+    ("ultradepth_t2", "U_rgbd64", "U_rgbdm64", "rmse", False),
     ("ultradepth_t2", "U_rgbd16", "U_rgb", "rmse", False),
     ("radar_t2", "R_he", "R_raw", "abs_rel", False),
     ("radar_t2", "R_jbf", "R_he", "abs_rel", False),
@@ -325,20 +361,22 @@ def run_one(model: Model, seed: int, datasets: dict, out: Path, args) -> dict:
     run = out / "runs" / model.name / f"seed{seed}"
     done = out / "results" / f"{model.name}_seed{seed}.json"
     if done.is_file():
-        return json.loads(done.read_text())
+        return {**json.loads(done.read_text()), "fresh": False}
+    epochs = args.sup_epochs if model.supervised else args.epochs
+    if model.epochs and not args.tiny:
+        epochs = model.epochs
     if model.supervised:
         common = [
-            "--width", 8, "--batch-size", 4, "--epochs", args.sup_epochs, "--lr", 1e-3,
+            "--width", 8, "--batch-size", 4, "--epochs", epochs, "--lr", 1e-3,
             "--loss", "berhu", "--lr-schedule", "cosine", "--seed", seed, "--pictures", 0,
             "--threads", 1,
         ]  # fmt: skip
     else:
         common = [
             "--self-supervised", "--width", 8, "--pose-width", 16, "--batch-size", 4,
-            "--epochs", args.epochs, "--lr", 1e-3, "--lr-schedule", "cosine", "--seed", seed,
+            "--epochs", epochs, "--lr", 1e-3, "--lr-schedule", "cosine", "--seed", seed,
             "--pictures", 0, "--threads", 1,
         ]  # fmt: skip
-    epochs = args.sup_epochs if model.supervised else args.epochs
     if not (run / "last.pt").is_file():
         sparsetools("train", ds, "-o", run, *model.options, *common)
     elif _epochs_done(run) < epochs:
@@ -392,7 +430,7 @@ def run_one(model: Model, seed: int, datasets: dict, out: Path, args) -> dict:
         }
         done.parent.mkdir(parents=True, exist_ok=True)
         done.write_text(json.dumps(record, indent=1))
-        return record
+        return {**record, "fresh": True}
     record = {
         "model": model.name,
         "seed": seed,
@@ -410,7 +448,7 @@ def run_one(model: Model, seed: int, datasets: dict, out: Path, args) -> dict:
     }
     done.parent.mkdir(parents=True, exist_ok=True)
     done.write_text(json.dumps(record, indent=1))
-    return record
+    return {**record, "fresh": True}
 
 
 def _best_epoch(run: Path) -> int:
@@ -601,10 +639,24 @@ def main() -> None:
         records = list(pool.map(lambda j: run_one(j[0], j[1], datasets, out, args), jobs))
     if not args.tiny:
         previous = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {"runs": {}}
-        runs = {**previous["runs"], **{f"{r['model']}/seed{r['seed']}": r for r in records}}
+        made = {
+            f"{r['model']}/seed{r['seed']}": {k: v for k, v in r.items() if k != "fresh"}
+            for r in records
+        }
+        runs = {**previous["runs"], **made}
         wall = time.perf_counter() - started
+        command = "python benchmarks/acceptance_claims.py " + shlex.join(sys.argv[1:])
+        invocation = {
+            "command": command,
+            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+            "runs_made": sorted(f"{r['model']}/seed{r['seed']}" for r in records if r["fresh"]),
+            "wall_seconds": round(wall),
+            "machine_load_start": load0,
+            "machine_load_end": os.getloadavg(),
+        }
         results = {
-            "command": "python benchmarks/acceptance_claims.py " + shlex.join(sys.argv[1:]),
+            "command": command,
+            "invocations": [*previous.get("invocations", []), invocation],
             "settings": {
                 "image_size": list(args.size),
                 "sequences": args.sequences,
