@@ -298,7 +298,7 @@ def dataset_info(
         dataset=str(root),
         schema_version=info.get("schema_version"),
         created_by=info.get("created_by"),
-        samples=len(rows),
+        samples=table.num_rows,
         sequences=len({r.sequence for r in rows}),
         splits=per_split,
         image_sizes=dict(sizes.most_common()),
@@ -540,13 +540,29 @@ def _verify_part(
             continue
         png = pngs.get(fid)
         if png is not None:
-            ok_mask = np.array_equal(np.flatnonzero(png), np.sort(flat))
-            # The PNG holds round(depth * 256) / 256, clipped to [1, 65535] / 256.
-            stored = png[v.astype(np.intp), u.astype(np.intp)].astype(np.float64)
-            err = np.abs(stored - np.clip(d.astype(np.float64), 1 / 256, 65535 / 256))
-            if not ok_mask or (err.size and float(err.max()) > 1 / 512 + 1e-6):
+            at, counts = png  # the PNG's valid pixels (flat, ascending) and depth x 256
+            disagree = not np.array_equal(at, np.sort(flat))
+            if not disagree and flat.size:
+                # The PNG holds round(depth * 256) / 256, clipped to [1, 65535] / 256.
+                stored = counts[np.searchsorted(at, flat)] / 256.0
+                err = np.abs(stored - np.clip(d.astype(np.float64), 1 / 256, 65535 / 256))
+                disagree = float(err.max()) > 1 / 512 + 1e-6
+            if disagree:
                 problems.append(f"{fid}: {r.sparse_path} and {rel} disagree")
     return problems
+
+
+def _valid_pixels(png: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A decoded KITTI depth PNG (metres, k / 256) as its valid pixels: flat indices (int32,
+    ascending) and the PNG's uint16 counts k, 6 bytes per valid pixel instead of 4 per pixel."""
+    flat = png.reshape(-1)
+    at = np.flatnonzero(flat)
+    counts = np.rint(flat[at].astype(np.float64) * 256.0).astype(np.uint16)
+    return at.astype(np.int32 if flat.size < 2**31 else np.int64), counts
+
+
+#: Manifest rows verified per chunk (memory: one chunk's row objects at a time).
+_VERIFY_CHUNK = 1024
 
 
 def verify_dataset(
@@ -583,37 +599,46 @@ def verify_dataset(
     threads = check_int_range(threads, "threads", low=1)
     root = Path(path)
     table, info = read_manifest(root / MANIFEST_NAME)
-    rows = ManifestRow.from_table(table)
     where = sample_roots(info, roots)
+    recorded = sample_roots(info, None)
     problems: list[str] = []
     warnings: list[str] = []
+    # The manifest is walked in chunks and each row's result folded at once: what is kept per
+    # sample is its id and sequence, and only for samples with a Parquet part the row and the
+    # valid pixels of its PNG (to compare the two), not every row object and decoded map.
+    ids: set[str] = set()
+    pngs: dict = {}
+    ref_status: Counter = Counter()
+    by_part: dict[str, list[ManifestRow]] = defaultdict(list)
+    seq_splits: dict[str, set] = defaultdict(set)
+    referenced: set[str] = set()  # reference-stored images: checked where they are now
 
     def one(r):
         return _verify_row(root, r, check_hashes, where)
 
-    if threads > 1:
-        with ThreadPoolExecutor(max_workers=threads) as pool:
-            results = list(pool.map(one, rows))
-    else:
-        results = [one(r) for r in rows]
-    pngs = {}
-    ref_status: Counter = Counter()
-    for r, (probs, png, warns, status) in zip(rows, results, strict=True):
-        problems.extend(probs)
-        warnings.extend(warns)
-        if status is not None:
-            ref_status[status] += 1
-        if png is not None:
-            pngs[r.id] = png
-    by_part: dict[str, list[ManifestRow]] = defaultdict(list)
-    for r in rows:
-        if r.sparse_parquet is not None:
-            by_part[r.sparse_parquet].append(r)
+    pool = ThreadPoolExecutor(max_workers=threads) if threads > 1 else None
+    try:
+        for start in range(0, table.num_rows, _VERIFY_CHUNK):
+            rows = ManifestRow.from_table(table.slice(start, _VERIFY_CHUNK))
+            results = pool.map(one, rows) if pool is not None else map(one, rows)
+            for r, (probs, png, warns, status) in zip(rows, results, strict=True):
+                problems.extend(probs)
+                warnings.extend(warns)
+                if status is not None:
+                    ref_status[status] += 1
+                ids.add(r.id)
+                seq_splits[r.sequence].add(r.split)
+                if r.sparse_parquet is not None:
+                    by_part[r.sparse_parquet].append(r)
+                    if png is not None:
+                        pngs[r.id] = _valid_pixels(png)
+                if r.rgb_root is not None and r.rgb_root in recorded:
+                    referenced.add(os.path.realpath(Path(recorded[r.rgb_root], r.rgb_path)))
+    finally:
+        if pool is not None:
+            pool.shutdown()
     for rel in sorted(by_part):
         problems.extend(_verify_part(root, rel, by_part[rel], pngs, check_hashes))
-    seq_splits: dict[str, set] = defaultdict(set)
-    for r in rows:
-        seq_splits[r.sequence].add(r.split)
     for seq in sorted(seq_splits):
         if len(seq_splits[seq]) > 1:
             warnings.append(
@@ -628,14 +653,7 @@ def verify_dataset(
         warnings.append(
             f"{STAGING}/ holds frames of an unfinished build (rerun the build to add them)"
         )
-    # A referenced image is checked above, where it is now: not again as an input of the build.
-    recorded = sample_roots(info, None)
-    referenced = {
-        os.path.realpath(Path(recorded[r.rgb_root], r.rgb_path))
-        for r in rows
-        if r.rgb_root is not None and r.rgb_root in recorded
-    }
-    changed, moved = _changed_inputs(root, {r.id for r in rows}, skip=referenced)
+    changed, moved = _changed_inputs(root, ids, skip=referenced)
     for sid, path in changed:
         problems.append(
             f"{sid}: input {path} changed since the build (rerun 'dataset build' to update)"
@@ -648,7 +666,7 @@ def verify_dataset(
     return VerifyReport(
         dataset=str(root),
         schema_version=info["schema_version"],
-        samples=len(rows),
+        samples=table.num_rows,
         inputs_changed=len(changed),
         problems=tuple(problems),
         warnings=tuple(warnings),
