@@ -402,6 +402,31 @@ def test_verify_reports_the_same_whatever_its_chunk_and_threads(inputs, tmp_path
     assert all(r == reports[0] for r in reports[1:])
 
 
+def test_verify_judges_inputs_by_the_last_journal_line_of_each_sample(inputs, tmp_path):
+    """The build's journal may hold several lines of one sample (an interrupted run): verify
+    (which streams the journal) checks the last one only, as the resume does."""
+    import dataclasses
+
+    from sparsetools.io.provenance import FRAMES_FILE, RECORD_DIR, FrameRecord
+
+    out = tmp_path / "ds"
+    build(inputs, out)
+    journal = out / RECORD_DIR / FRAMES_FILE
+    lines = journal.read_text().splitlines()
+    rec = FrameRecord.from_line(lines[0])
+    stale = dataclasses.replace(
+        rec, inputs=tuple(dataclasses.replace(i, size=i.size + 1) for i in rec.inputs)
+    ).to_line()
+    journal.write_text("\n".join([stale, *lines]) + "\n")  # stale first: the last line wins
+    assert verify_dataset(out).problems == ()
+    journal.write_text("\n".join([*lines, stale]) + "\n")  # stale last: every input "changed"
+    problems = verify_dataset(out).problems
+    assert len(problems) == len(rec.inputs) > 0
+    assert all(
+        p.startswith(f"{rec.key}: input ") and "changed since the build" in p for p in problems
+    )
+
+
 def test_reader_split_views_and_pickling(inputs, tmp_path):
     out = tmp_path / "ds"
     build(inputs, out, split="0.34,0.33,0.33")

@@ -678,27 +678,34 @@ def verify_dataset(
 
 def _changed_inputs(root: Path, ids: set[str], skip: set[str] = frozenset()) -> tuple[list, list]:
     """(sample, input) pairs whose input file differs from the build's record, and those
-    whose input is gone (inputs at the paths ``skip`` left out). A dataset without a record
-    (older sparsetools) reports none."""
-    from ...io.provenance import file_identity, read_frame_records
+    whose input is gone (inputs at the paths ``skip`` left out), by sample. A dataset without
+    a record (older sparsetools) reports none.
+
+    The journal is read twice, streamed: first where each sample's last line is (the last line
+    of a key wins), then those lines are checked; inputs shared by many samples (a calibration)
+    are looked at once (a bounded cache), so nothing is held per sample but a line number."""
+    from functools import lru_cache
+
+    from ...io.provenance import file_identity, iter_frame_records
 
     changed, gone = [], []
     try:
-        records = read_frame_records(root)
-    except FormatError:
-        return changed, gone
-    cache: dict[str, object] = {}
-    for sid in sorted(records):
-        if sid not in ids:
-            continue
-        for old in records[sid].inputs:
-            if old.path in skip:
+        last = {rec.key: i for i, rec in enumerate(iter_frame_records(root)) if rec.key in ids}
+        identity = lru_cache(maxsize=4096)(file_identity)
+        for i, rec in enumerate(iter_frame_records(root)):
+            if last.get(rec.key) != i:
                 continue
-            now = cache.get(old.path)
-            if now is None:
-                now = cache[old.path] = file_identity(old.path)
-            if now.size < 0:
-                gone.append((sid, old.path))
-            elif not old.same_file(now):
-                changed.append((sid, old.path))
+            for old in rec.inputs:
+                if old.path in skip:
+                    continue
+                now = identity(old.path)
+                if now.size < 0:
+                    gone.append((rec.key, old.path))
+                elif not old.same_file(now):
+                    changed.append((rec.key, old.path))
+    except (FormatError, OSError):
+        return [], []
+    # by sample, as before (a stable sort: a sample's inputs keep their order)
+    changed.sort(key=lambda pair: pair[0])
+    gone.sort(key=lambda pair: pair[0])
     return changed, gone
