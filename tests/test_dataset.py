@@ -387,15 +387,15 @@ def test_info_and_verify_are_records_with_their_own_text(inputs, tmp_path):
 def test_verify_reports_the_same_whatever_its_chunk_and_threads(inputs, tmp_path, monkeypatch):
     """verify walks the manifest in chunks (memory): chunks of one row, of two and the default,
     on one thread and on three, give the same report, problems in the same order."""
-    from sparsetools.pipeline.dataset import inspect
+    from sparsetools.pipeline.dataset import verify
 
     out = tmp_path / "ds"
     build(inputs, out)
     (out / "rgb" / "seqA" / "000001.png").unlink()
     (out / "sparse" / "seqB" / "000002.png").write_bytes(b"not a png")
     reports = []
-    for chunk in (1, 2, inspect._VERIFY_CHUNK):
-        monkeypatch.setattr(inspect, "_VERIFY_CHUNK", chunk)
+    for chunk in (1, 2, verify._VERIFY_CHUNK):
+        monkeypatch.setattr(verify, "_VERIFY_CHUNK", chunk)
         for threads in (1, 3):
             reports.append(verify_dataset(out, threads=threads).to_dict())
     assert len(reports[0]["problems"]) >= 2 and reports[0]["samples"] == 9

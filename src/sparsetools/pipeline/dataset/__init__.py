@@ -11,7 +11,7 @@
 """
 
 from .build import BuildInputs, DatasetJob, build_dataset, find_build_inputs
-from .inspect import DatasetInfo, VerifyReport, dataset_info, verify_dataset
+from .inspect import DatasetInfo, dataset_info
 from .official_splits import OFFICIAL_SPLITS, official_split_lists, official_split_names
 from .pack import pack_dataset
 from .settings import SPARSE_FORMATS, BuildSettings
@@ -33,6 +33,7 @@ from .staging import (
     read_staged,
     write_record,
 )
+from .verify import VerifyReport, verify_dataset
 
 __all__ = [
     "DEFAULT_SPLIT",

@@ -29,7 +29,7 @@ from ..._version import __version__
 from ...errors import FormatError, ParameterError
 from ...io.dataset import MANIFEST_NAME, ManifestRow
 from ...validate import check_int_range
-from .inspect import DatasetInfo, VerifyReport, _human, dataset_info, verify_dataset
+from .inspect import DatasetInfo, _human, dataset_info
 from .report_data import (
     EVAL_METRIC,
     EvalResults,
@@ -41,6 +41,7 @@ from .report_data import (
     read_eval_results,
     thumbnail,
 )
+from .verify import VerifyReport, verify_dataset
 
 __all__ = ["ReportSettings", "ReportSummary", "render_dataset_report", "write_dataset_report"]
 
