@@ -455,3 +455,28 @@ def test_atomic_outputs_get_normal_permissions(tmp_path):
     finally:
         os.umask(old)
     assert (tmp_path / "a.bin").stat().st_mode & 0o777 == 0o644
+
+
+def test_reading_a_small_file_reserves_its_size_not_the_limit(tmp_path):
+    """read_regular_file under a 1 GiB address-space limit reads a small file whose limit is
+    4 GiB (a depth map's): it reserved the limit for every file before, and failed there."""
+    import subprocess
+    import sys
+
+    (tmp_path / "m.png").write_bytes(b"x" * 1000)
+    (tmp_path / "big").write_bytes(b"y" * 3000)
+    code = (
+        "import resource, sys\n"
+        "from sparsetools.errors import FormatError\n"
+        "from sparsetools.io.sidecar import read_regular_file\n"
+        "resource.setrlimit(resource.RLIMIT_AS, (1 << 30, resource.RLIM_INFINITY))\n"
+        f"d = read_regular_file({str(tmp_path / 'm.png')!r}, what='map', max_bytes=1 << 32)\n"
+        "print(len(d))\n"
+        "try:\n"
+        f"    read_regular_file({str(tmp_path / 'big')!r}, what='map', max_bytes=2000)\n"
+        "except FormatError as e:\n"
+        "    print('refused', 'limit 2000' in str(e))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-500:]
+    assert out.stdout.split() == ["1000", "refused", "True"]

@@ -112,7 +112,18 @@ def read_regular_file(
                 f"{path}: {st.st_size} bytes, more than a {what} holds (limit {max_bytes}){hint}"
             )
         with os.fdopen(fd, "rb", closefd=False) as fh:
-            data = fh.read(max_bytes + 1)
+            # What fstat says plus one byte: a read of ``max_bytes + 1`` would reserve that
+            # much (4 GiB for a depth map's limit) for every small file. A file that grew
+            # since is read on in 1 MiB pieces, still never past ``max_bytes + 1``.
+            parts = [fh.read(min(st.st_size, max_bytes) + 1)]
+            got = len(parts[0])
+            while st.st_size < got <= max_bytes:
+                piece = fh.read(min(1 << 20, max_bytes + 1 - got))
+                if not piece:
+                    break
+                parts.append(piece)
+                got += len(piece)
+            data = parts[0] if len(parts) == 1 else b"".join(parts)
     except OSError as exc:
         raise FormatError(f"{path}: cannot read the {what} ({exc.strerror or exc}){hint}") from exc
     finally:
