@@ -407,3 +407,22 @@ def test_reading_a_pcd_loads_neither_open3d_nor_numba_unless_compressed(tmp_path
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["False", "False", "False", "True"]
+
+
+def test_ascii_packed_colours_and_name_collisions(tmp_path):
+    # PCL writes a U-typed rgb as an integer in ascii files: unpacked to r, g, b as in binary
+    path = tmp_path / "c.pcd"
+    path.write_bytes(pcd_bytes([*XYZ, ("rgb", "U", 4, 1)], [(1, 2, 3, 0x00FF8040)], "ascii"))
+    assert read_points(path)[0].tolist() == [1, 2, 3, 255, 128, 64]
+    np.testing.assert_array_equal(read_points(path), open3d_read(path))
+    # a field named as Open3D names a group of others: which column is which is ambiguous
+    fields = [*XYZ, ("normals", "F", 4, 1), ("normal_x", "F", 4, 1), ("normal_y", "F", 4, 1),
+              ("normal_z", "F", 4, 1)]  # fmt: skip
+    path.write_bytes(pcd_bytes(fields, [(1, 2, 3, 4, 0, 0, 1)]))
+    with pytest.raises(FormatError, match="'normals' collides"):
+        read_points(path)
+
+
+def test_a_negative_uncompressed_size_is_refused():
+    with pytest.raises(FormatError, match="negative"):
+        lzf_decompress(b"\x00a", -1)
