@@ -32,19 +32,24 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import itertools
 import logging
 import os
 import time
 import traceback
-from collections.abc import Callable, Iterable, Mapping
+from array import array
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Generic, TypeVar
 
+import numpy as np
+
 from ..errors import FrameError, OutputError, ParameterError, SparsetoolsError
 from ..io.atomic import remove_stale_temporaries
-from ..io.provenance import output_identity
-from .batch import Batch, FrameResult, RunSummary
+from ..io.frame_index import key_hash
+from ..io.provenance import check_record_dir, output_identity
+from .batch import Batch, FrameResult, ResultLog, RunSummary
 from .provenance import OutputFolder, option_names, settings_dict
 
 __all__ = [
@@ -52,6 +57,7 @@ __all__ = [
     "FrameStats",
     "FrameTask",
     "RunSpec",
+    "TaskStream",
     "check_output_dir",
     "run_frames",
     "run_job",
@@ -172,6 +178,10 @@ class BatchJob(Generic[I]):
     command: ClassVar[str] = ""
     noun: ClassVar[str] = "results"
     stats_type: ClassVar[type[FrameStats]] = FrameStats
+    #: True when :meth:`tasks` makes each frame's task from that frame alone (the tasks of a
+    #: slice of the frames are that slice of the tasks): the runner then makes them a chunk at
+    #: a time instead of holding them all (:class:`TaskStream`).
+    tasks_per_frame: ClassVar[bool] = False
     #: Fields only the parent process uses (in :meth:`before` and :meth:`finish`): they are
     #: not sent to worker processes with every task.
     parent_only: ClassVar[tuple[str, ...]] = ()
@@ -230,7 +240,13 @@ class BatchJob(Generic[I]):
     # -- reading the results ----------------------------------------------------------------------
     def stats(self, summary: RunSummary) -> list:
         """The typed statistics of every frame done now or up to date, in task order."""
-        return [self.stats_type.from_record(r.stats) for r in summary.ok]
+        return [self.stats_type.from_record(r.stats) for r in summary.iter_ok()]
+
+    def iter_stats(self, summary: RunSummary) -> Iterator[tuple[FrameResult, FrameStats]]:
+        """(result, typed statistics) of every frame done now or up to date, in task order,
+        read one at a time (what a :meth:`finish` over a million frames uses)."""
+        for r in summary.iter_ok():
+            yield r, self.stats_type.from_record(r.stats)
 
 
 class _Guarded:
@@ -270,29 +286,102 @@ class _Guarded:
             return FrameResult(task.frame_id, False, error=f"internal error: {msg}", detail=detail)
 
 
-def _check_tasks(tasks: list[FrameTask]) -> None:
+#: Tasks planned (their records read, their inputs' identities taken) at a time.
+PLAN_CHUNK = 1024
+
+
+class TaskStream:
+    """A job's tasks made a chunk of frames at a time, each time they are iterated.
+
+    The runner goes over the tasks twice (checks before anything is written, then the run);
+    for a job whose tasks are made frame by frame (``BatchJob.tasks_per_frame``) it never
+    holds more than ``chunk`` of them.
+    """
+
+    def __init__(self, job: BatchJob, frames: list, out_dir: Path, *, chunk: int = PLAN_CHUNK):
+        self.job, self.frames, self.out_dir, self.chunk = job, frames, out_dir, chunk
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __iter__(self):
+        for i in range(0, len(self.frames), self.chunk):
+            yield from self.job.tasks(self.frames[i : i + self.chunk], self.out_dir)
+
+
+class _TaskChecks:
+    """The checks over every task of a run, 8 bytes per frame id, output and input: two
+    tasks with one frame id, two tasks writing one file, an output replacing an input.
+    Hashes find the candidates; the messages come from a second, exact pass over those."""
+
+    def __init__(self) -> None:
+        self.ids, self.outs, self.owner, self.srcs = array("q"), array("q"), array("q"), array("q")
+        self.folders: set[str] = set()
+        self.n = 0
+
+    def add(self, task: FrameTask) -> None:
+        self.ids.append(key_hash(task.frame_id))
+        for p in task.outputs.values():
+            full = os.path.abspath(p)
+            self.outs.append(hash(full))
+            self.owner.append(self.n)
+            self.folders.add(os.path.dirname(full))
+        for src in task.sources:
+            self.srcs.append(hash(os.path.abspath(src)))
+        self.n += 1
+
+    def id_hashes(self) -> np.ndarray:
+        return np.frombuffer(self.ids, dtype=np.int64)
+
+    def verify(self, tasks: Iterable[FrameTask]) -> None:
+        ids = np.sort(self.id_hashes())
+        same_id = set(ids[1:][ids[1:] == ids[:-1]].tolist())
+        outs = np.frombuffer(self.outs, dtype=np.int64)
+        owner = np.frombuffer(self.owner, dtype=np.int64)
+        order = np.lexsort((owner, outs))
+        h, o = outs[order], owner[order]
+        clash = (h[1:] == h[:-1]) & (o[1:] != o[:-1])
+        same_out = set(h[1:][clash].tolist())
+        replaces = set(outs[np.isin(outs, np.frombuffer(self.srcs, dtype=np.int64))].tolist())
+        if same_id or same_out or replaces:
+            _check_exactly(tasks, same_id, same_out, replaces)
+
+
+def _check_exactly(tasks, same_id: set, same_out: set, replaces: set) -> None:
+    """The refusals of :class:`_TaskChecks`, in task order, for the candidate hashes only."""
     ids: dict[str, FrameTask] = {}
     for t in tasks:
-        if t.frame_id in ids:
-            raise ParameterError(f"two inputs map to the same frame id: {t.frame_id}")
-        ids[t.frame_id] = t
+        if key_hash(t.frame_id) in same_id:
+            if t.frame_id in ids:
+                raise ParameterError(f"two inputs map to the same frame id: {t.frame_id}")
+            ids[t.frame_id] = t
+    sources = set()
+    if replaces:
+        for t in tasks:
+            sources.update(k for s in t.sources if hash(k := os.path.abspath(s)) in replaces)
     owner: dict[str, FrameTask] = {}
-    sources = {}
     for t in tasks:
-        for s in t.sources:
-            sources[os.path.abspath(s)] = t
-    for t in tasks:
-        for p in t.output_paths:
+        for p in t.outputs.values():
             key = os.path.abspath(p)
-            if key in owner and owner[key] is not t:
-                other = owner[key]
-                raise ParameterError(
-                    f"frames {other.frame_id} ({_first_source(other)}) and {t.frame_id} "
-                    f"({_first_source(t)}) would both write {p}"
-                )
-            owner[key] = t
-            if key in sources:
+            h = hash(key)
+            if h in same_out:
+                if key in owner and owner[key].frame_id != t.frame_id:
+                    other = owner[key]
+                    raise ParameterError(
+                        f"frames {other.frame_id} ({_first_source(other)}) and {t.frame_id} "
+                        f"({_first_source(t)}) would both write {p}"
+                    )
+                owner[key] = t
+            if h in replaces and key in sources:
                 raise OutputError(f"output {p} would replace an input file: choose another -o")
+
+
+def _check_tasks(tasks: Iterable[FrameTask]) -> None:
+    """Refuse two tasks with one frame id or one output, and an output replacing an input."""
+    checks = _TaskChecks()
+    for t in tasks:
+        checks.add(t)
+    checks.verify(tasks)
 
 
 def _first_source(task: FrameTask) -> str:
@@ -312,11 +401,17 @@ def run_frames(
 ) -> RunSummary:
     """Run ``fn`` over ``tasks`` with resume, progress and an error policy.
 
+    Memory is O(1) per frame beyond the tasks themselves: the tasks are gone over twice (the
+    checks, then the run, ``PLAN_CHUNK`` at a time), results go to the summary's
+    :class:`~.batch.ResultLog` and the folder's journal as they come, and only the frames in
+    flight are held (issue 28).
+
     Parameters
     ----------
     fn : callable(FrameTask) -> dict
         Module-level or picklable job; writes its outputs atomically, returns statistics.
-    tasks : iterable of FrameTask
+    tasks : list or re-iterable of FrameTask (:class:`TaskStream`)
+        Iterated twice: once to check them all, once to run them.
     batch : Batch, optional
         Executor, overwrite, error policy, progress, debug. Default: ``Batch()``.
     spec : RunSpec, optional
@@ -339,26 +434,39 @@ def run_frames(
         With ``on_error="skip"`` the caller decides the exit status from ``summary.failed``.
     """
     batch = batch or Batch()
-    tasks = list(tasks)
-    _check_tasks(tasks)
+    if not isinstance(tasks, (list, tuple, TaskStream)):
+        tasks = list(tasks)
     t0 = time.perf_counter()
-    by_id = {t.frame_id: t for t in tasks}
-    results: dict[str, FrameResult] = {}
     summary = RunSummary(
         command=spec.command if spec else "",
         output=spec.out_dir if spec else None,
         overwrite=batch.overwrite,
     )
+    checks = _TaskChecks()
     if spec is None:
-        done = complete or (lambda t: bool(t.outputs) and all(p.is_file() for p in t.output_paths))
-        todo = [t for t in tasks if batch.overwrite or not done(t)]
-        skipped = [t for t in tasks if t not in todo]
-        recorded: dict[str, dict] = {}
-        for folder in {p.parent for t in tasks for p in t.output_paths}:
+        for t in tasks:
+            checks.add(t)
+        checks.verify(tasks)
+        summary.log = ResultLog(checks.n)
+        for folder in checks.folders:
             remove_stale_temporaries(folder, recursive=False)
         if before is not None:
             before()
-        _execute(fn, todo, batch, results, None, set(), desc or "frames", on_done, by_id)
+        done = complete or (lambda t: bool(t.outputs) and all(os.path.isfile(p)
+                                                              for p in t.outputs.values()))  # fmt: skip
+
+        def plan(chunk):
+            if batch.overwrite:
+                return chunk, {}, set()
+            todo, fresh = [], {}
+            for t in chunk:
+                if done(t):
+                    fresh[t.frame_id] = {}
+                else:
+                    todo.append(t)
+            return todo, fresh, set()
+
+        _execute(fn, tasks, plan, checks.n, batch, summary, None, desc or "frames", on_done)
     else:
         with OutputFolder(
             spec.out_dir,
@@ -368,56 +476,79 @@ def run_frames(
             overwrite=batch.overwrite,
             options=spec.options,
         ) as folder:
-            plan = folder.plan(tasks, complete, shared=spec.shared_outputs)
+            for t in tasks:
+                checks.add(t)
+                folder.check_task(t)
+            checks.verify(tasks)
+            folder.begin(shared=spec.shared_outputs, this_run=checks.id_hashes())
             # under the lock and in checked folders: a run's temporaries are its own
-            for d in {p.parent for t in tasks for p in t.output_paths}:
+            for d in checks.folders:
                 remove_stale_temporaries(d, recursive=False)
-            skipped = plan.up_to_date
-            recorded = plan.stats
-            if skipped:
-                log.info("%d of %d frame(s) up to date, skipping them", len(skipped), len(tasks))
-            if plan.recomputed:
-                log.info("%d frame(s) with changed inputs are recomputed", len(plan.recomputed))
+            summary.log = ResultLog(checks.n, folder=check_record_dir(spec.out_dir))
             if before is not None:
                 before()
+
+            def plan(chunk):
+                p = folder.plan(chunk, complete)
+                return p.todo, p.stats, p.recomputed
+
             try:
-                _execute(
-                    fn, plan.todo, batch, results, folder, plan.recomputed,
-                    desc or spec.command, on_done, by_id,
-                )  # fmt: skip
+                _execute(fn, tasks, plan, checks.n, batch, summary, folder,
+                         desc or spec.command, on_done)  # fmt: skip
             finally:
                 summary.removed_stale = folder.removed_stale
                 summary.inputs_changed = sorted(folder.inputs_changed)
-    for t in skipped:
-        results[t.frame_id] = FrameResult(
-            t.frame_id, True, stats=recorded.get(t.frame_id, {}), skipped=True
-        )
-    summary.results = [results[t.frame_id] for t in tasks if t.frame_id in results]
+    counts = summary.counts()
+    if counts["skipped_existing"]:
+        log.info("%d of %d frame(s) up to date, skipped", counts["skipped_existing"], checks.n)
+    if counts["recomputed"]:
+        log.info("%d frame(s) with changed inputs recomputed", counts["recomputed"])
     summary.seconds = time.perf_counter() - t0
     return summary
 
 
-def _execute(fn, todo, batch, results, folder, recomputed, desc, on_done, by_id) -> None:
-    if not todo:
+def _execute(fn, tasks, plan, n, batch, summary, folder, desc, on_done) -> None:
+    """Plan ``tasks`` a chunk at a time (``plan(chunk) -> (todo, up to date's statistics,
+    recomputed ids)``) and run what is to do on one executor, lazily."""
+    inflight: dict[str, tuple[int, FrameTask, bool]] = {}
+    log_ = summary.log
+
+    def todo_stream():
+        it = iter(enumerate(tasks))
+        while chunk := list(itertools.islice(it, PLAN_CHUNK)):
+            todo, fresh, recomputed = plan([t for _, t in chunk])
+            todo_ids = {t.frame_id for t in todo}
+            for pos, t in chunk:
+                if t.frame_id in todo_ids:
+                    inflight[t.frame_id] = (pos, t, t.frame_id in recomputed)
+                    yield t
+                elif t.frame_id in fresh:
+                    log_.add(pos, FrameResult(t.frame_id, True, stats=fresh[t.frame_id],
+                                              skipped=True))  # fmt: skip
+
+    stream = todo_stream()
+    first = next(stream, None)
+    if first is None:
         return
-    executor = batch.make_executor(len(todo))
+    executor = batch.make_executor(n)
     bar = None
     if batch.show_progress:
         import sys
 
         from tqdm import tqdm
 
-        bar = tqdm(total=len(todo), desc=desc, unit="frame", file=sys.stderr, leave=False)
+        bar = tqdm(total=n, desc=desc, unit="frame", file=sys.stderr, leave=False)
     try:
-        for res in executor.map(_Guarded(fn, batch.debug), todo):
-            task = by_id[res.frame_id]
-            res.recomputed = res.frame_id in recomputed
-            results[res.frame_id] = res
+        for res in executor.map(_Guarded(fn, batch.debug), itertools.chain([first], stream)):
+            pos, task, recomputed = inflight.pop(res.frame_id)
+            res.recomputed = recomputed
             if folder is not None:
                 if res.ok:
                     folder.record_done(task, res.stats, res.output_ids)
                 else:
                     folder.record_failed(task)
+            res.output_ids = {}
+            log_.add(pos, res)
             if on_done is not None:
                 on_done(task, res)
             if bar is not None:
@@ -468,7 +599,7 @@ def run_job(
     frames = list(frames)
     job = job.planned(frames)
     out = check_output_dir(out_dir, [p for p in inputs if p is not None])
-    tasks = job.tasks(frames, out)
+    tasks = TaskStream(job, frames, out) if job.tasks_per_frame else job.tasks(frames, out)
     spec = RunSpec(
         job.command,
         out,

@@ -1,6 +1,10 @@
 """Dask executor: the same per-frame functions on a Dask cluster.
 
-Frames are sent in chunks (``chunk_size`` frames per Dask task); every frame writes its own
+Frames are sent in chunks, many frames per Dask task: a Dask task costs the scheduler a few
+milliseconds whatever it holds, so a chunk is sized from the work its workers report (about
+0.25 s of work, at least 2 chunks per worker) to keep that cost under 5 % of the chunk's work
+(issue 28); at most ``3 x workers`` chunks are in flight, taken lazily from the frames
+(:mod:`.chunking`). Every frame writes its own
 deterministically named files atomically, so a rerun is idempotent and a lost worker loses
 at most the frames it had not finished. Results do not depend on the number of workers:
 per-frame randomness comes from :func:`sparsetools.random.frame_rng` (seed, frame id).
@@ -12,7 +16,7 @@ started for the run and closed afterwards.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
 from ..errors import DependencyError, ParameterError
@@ -21,10 +25,6 @@ from ..validate import check_int_range
 __all__ = ["DaskExecutor"]
 
 log = logging.getLogger(__name__)
-
-
-def _run_chunk(fn: Callable[[Any], Any], chunk: list) -> list:
-    return [fn(item) for item in chunk]
 
 
 class DaskExecutor:
@@ -37,12 +37,19 @@ class DaskExecutor:
     scheduler : str, optional
         Address of a running ``dask scheduler`` (e.g. ``tcp://10.0.0.5:8786``).
     chunk_size : int, optional
-        Frames per Dask task; default: about 4 tasks per worker, at most 32 frames.
+        Frames per Dask task; default: sized from the measured work (``target_seconds``).
+    n_items : int, optional
+        How many frames the map will get at most (the items are then taken lazily); None:
+        they are taken into a list first.
     """
 
+    #: Work per Dask task (seconds): a task costs the scheduler a few ms whatever it holds.
+    target_seconds = 0.25
+
     def __init__(
-        self, *, workers: int = 1, scheduler: str | None = None, chunk_size: int | None = None
-    ):
+        self, *, workers: int = 1, scheduler: str | None = None, chunk_size: int | None = None,
+        n_items: int | None = None,
+    ):  # fmt: skip
         try:
             import distributed  # noqa: F401
         except ImportError as exc:
@@ -54,6 +61,7 @@ class DaskExecutor:
         self.workers = workers  # >= 1: checked by make_executor
         self.scheduler = scheduler
         self.chunk_size = chunk_size
+        self.n_items = n_items
 
     def _client(self):
         from distributed import Client, LocalCluster
@@ -83,20 +91,27 @@ class DaskExecutor:
         )
         return Client(cluster), cluster
 
-    def map(self, fn: Callable[[Any], Any], items: Sequence[Any]) -> Iterator[Any]:
-        items = list(items)
-        if not items:
-            return
-        from distributed import as_completed
+    def map(self, fn: Callable[[Any], Any], items: Iterable[Any]) -> Iterator[Any]:
+        from .chunking import ChunkSizer, map_in_chunks, run_chunk
 
-        n_workers = self.workers
-        size = self.chunk_size or max(1, min(32, -(-len(items) // (4 * n_workers))))
-        chunks = [items[i : i + size] for i in range(0, len(items), size)]
+        if self.n_items is None:
+            items = list(items)
+        n = len(items) if self.n_items is None else self.n_items
+        if n == 0:
+            return
+        from distributed import wait
+
+        sizer = ChunkSizer(n, self.workers, target_seconds=self.target_seconds, first=8,
+                           most=4096, balance=2, fixed=self.chunk_size)  # fmt: skip
         client, cluster = self._client()
         try:
-            futures = client.map(_run_chunk, [fn] * len(chunks), chunks, pure=False)
-            for fut in as_completed(futures):
-                yield from fut.result()
+            yield from map_in_chunks(
+                items,
+                submit=lambda chunk: client.submit(run_chunk, fn, chunk, pure=False),
+                wait_any=lambda fs: wait(list(fs), return_when="FIRST_COMPLETED").done,
+                sizer=sizer,
+                window=3 * self.workers,
+            )
         finally:
             client.close()
             if cluster is not None:

@@ -259,6 +259,7 @@ class ProjectJob(BatchJob[ProjectInput]):
 
     command: ClassVar[str] = "project"
     noun: ClassVar[str] = "depth maps"
+    tasks_per_frame: ClassVar[bool] = True
     stats_type: ClassVar[type[FrameStats]] = ProjectStats
 
     settings: ProjectSettings
@@ -431,31 +432,40 @@ class ProjectJob(BatchJob[ProjectInput]):
                     f"parts are kept in {out_dir / PARTS_DIR}: rerun with --overwrite to "
                     "rebuild the table"
                 ) from exc
-        stats = self.stats(summary)
-        pixels = sum(st.pixels for st in stats)
-        valid = sum(st.valid_pixels for st in stats)
-        empty = [(r, st) for r, st in zip(summary.ok, stats, strict=True) if st.empty]
-        if empty:
-            shown = ", ".join(f"{r.frame_id} ({st.empty_reason or ''})" for r, st in empty[:3])
-            more = f" and {len(empty) - 3} more" if len(empty) > 3 else ""
-            log.warning("%d empty depth map(s): %s%s", len(empty), shown, more)
+        # one frame's statistics at a time: a run over a million frames holds none of them
+        n = dict.fromkeys(("pixels", "valid", "points_in", "points_in_image", "clipped",
+                           "occluded", "empty"), 0)  # fmt: skip
+        shown = []
+        for r, st in self.iter_stats(summary):
+            n["pixels"] += st.pixels
+            n["valid"] += st.valid_pixels
+            n["points_in"] += st.points_in
+            n["points_in_image"] += st.points_in_image
+            n["clipped"] += st.clipped
+            n["occluded"] += st.occluded or 0
+            if st.empty:
+                n["empty"] += 1
+                if len(shown) < 3:
+                    shown.append(f"{r.frame_id} ({st.empty_reason or ''})")
+        if n["empty"]:
+            more = f" and {n['empty'] - 3} more" if n["empty"] > 3 else ""
+            log.warning("%d empty depth map(s): %s%s", n["empty"], ", ".join(shown), more)
         seconds = summary.seconds
-        occluded = (
-            {"occluded_pixels": sum(st.occluded or 0 for st in stats)}
-            if self.settings.filter_occluded else {}
-        )  # fmt: skip
+        pixels, valid = n["pixels"], n["valid"]
+        occluded = {"occluded_pixels": n["occluded"]} if self.settings.filter_occluded else {}
         return {
             **occluded,
-            "points_in": sum(st.points_in for st in stats),
-            "points_in_image": sum(st.points_in_image for st in stats),
+            "points_in": n["points_in"],
+            "points_in_image": n["points_in_image"],
             "valid_pixels": int(valid),
             "density_pct": round(100.0 * valid / pixels, 4) if pixels else 0.0,
-            "clipped": sum(st.clipped for st in stats),
-            "empty_maps": len(empty),
+            "clipped": n["clipped"],
+            "empty_maps": n["empty"],
             "format": self.settings.fmt,
             "output": str(out_dir / PARQUET_NAME) if self.settings.fmt == "parquet"
             else str(out_dir),
-            "frames_per_s": round(len(summary.done) / seconds, 2) if seconds > 0 else 0.0,
+            "frames_per_s": round(summary.counts()["processed"] / seconds, 2)
+            if seconds > 0 else 0.0,
         }  # fmt: skip
 
 

@@ -27,9 +27,12 @@ import os
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
+import numpy as np
+
 from .._version import __version__
-from ..errors import OutputError
+from ..errors import FormatError, OutputError
 from ..io.containment import ContainedPaths, contained_record_path, remove_output
+from ..io.frame_index import FrameIndex, compact_journal
 from ..io.provenance import (
     RECORD_DIR,
     FileIdentity,
@@ -263,6 +266,13 @@ class Plan:
 class OutputFolder:
     """The resume rule of one output folder (use as a context manager: it holds the lock).
 
+    Memory is O(1) per frame (issue 28): the folder's journal is read through a
+    :class:`~sparsetools.io.frame_index.FrameIndex` (16 bytes per frame), records are appended
+    as frames complete and never held, and the journal is compacted at the end by
+    :func:`~sparsetools.io.frame_index.compact_journal` one line at a time. A run uses it in
+    three steps: :meth:`check_task` for every task (before anything is written), :meth:`begin`
+    once, then :meth:`plan` for each chunk of tasks as it runs them.
+
     Parameters
     ----------
     out : path-like
@@ -274,6 +284,10 @@ class OutputFolder:
         What the folder holds, for messages (``depth maps``).
     overwrite : bool
     """
+
+    #: Input identities kept for reuse (a calibration every frame shares is read once per
+    #: this many distinct inputs).
+    IDENTITY_CACHE = 4096
 
     def __init__(
         self,
@@ -291,20 +305,25 @@ class OutputFolder:
         self.names = {**option_names(settings), **(options or {})}
         self.noun = noun
         self.overwrite = overwrite
-        self.records: dict[str, FrameRecord] = {}
-        self.new_records: dict[str, FrameRecord] = {}
+        self.index: FrameIndex | None = None
         self.dropped: set[str] = set()
+        self.recorded = 0
         self._identity_cache: dict[str, FileIdentity] = {}
         self._folders: dict[str, str] = {}  # resolved input folders, for file_identity
         self._out_prefix = os.path.join(os.path.abspath(self.out), "")
+        self._contained = ContainedPaths(self.out)
         self._lock = None
         self._journal = None
         self.removed_stale = 0
         self._started = False
         self._had_record = False
         self._run_written = False
-        self._outputs: list[Path] = []
-        self._before: dict[str, tuple[FileIdentity, ...]] = {}
+        self._shared: list[Path] = []
+        self._foreign: list = []
+        self._foreign_count = 0
+        self._wrote_unrecorded = False
+        #: tasks planned and not recorded yet -> their inputs' identities before they ran
+        self._pending: dict[str, tuple] = {}
         self.inputs_changed: set[str] = set()
 
     # -- opening: lock and settings check --------------------------------------------------
@@ -326,19 +345,34 @@ class OutputFolder:
         if old is not None and not self.overwrite:
             check_made_by(old, command=self.command, settings=self.settings, names=self.names,
                           noun=self.noun, place=self.out)  # fmt: skip
-        self.records = {} if old is None else read_frame_records(self.out)
         self._had_record = old is not None
+        try:
+            self.index = FrameIndex(self.out, present=old is not None)
+        except OSError as exc:
+            raise FormatError(
+                f"{self.out / RECORD_DIR}: cannot read the frame record ({exc.strerror or exc}); "
+                "use --overwrite"
+            ) from exc
 
     def __exit__(self, *exc) -> None:
         try:
             if self._journal is not None:
                 self._journal.__exit__(*exc)
                 self._journal = None
-            if self._started:
-                self._compact()
+            if self._started and (self.overwrite or self.recorded or self.dropped):
+                compact_journal(self.out, self.index, keep_old=not self.overwrite,
+                                dropped=self.dropped)  # fmt: skip
         finally:
+            if self.index is not None:
+                self.index.close()
             self._lock.__exit__(*exc)
-            wrote = self.new_records or any(Path(p).exists() for p in self._outputs)
+            wrote = (
+                self.recorded
+                or self._wrote_unrecorded
+                or any(os.path.lexists(p) for t, _ in self._pending.values()
+                       for p in t.outputs.values())
+                or any(p.exists() for p in self._shared)
+            )  # fmt: skip
             if not self._had_record and not wrote:
                 remove_empty_record_dir(self.out, run_record=True)
             elif not self._started and self._fresh_lock:
@@ -350,6 +384,8 @@ class OutputFolder:
         ident = self._identity_cache.get(key)
         if ident is None:
             ident = file_identity(path, folders=self._folders)
+            if len(self._identity_cache) >= self.IDENTITY_CACHE:
+                self._identity_cache.clear()
             self._identity_cache[key] = ident
         return ident
 
@@ -360,80 +396,96 @@ class OutputFolder:
             return full[len(self._out_prefix) :].replace(os.sep, "/")
         return "." if full == self._out_prefix[:-1] else full
 
-    def plan(self, tasks: Iterable, complete=None, *, shared: Iterable = ()) -> Plan:
-        """Split ``tasks`` into what to compute and what is up to date.
+    def check_task(self, task) -> None:
+        """Before anything is written: every output of ``task`` is contained in the folder (no
+        link on the way, :mod:`sparsetools.io.containment`); in a folder without a record,
+        an existing output is noted as foreign (refused by :meth:`begin`)."""
+        for p in task.outputs.values():
+            self._contained.check(p)
+        if not self._had_record and not self.overwrite:
+            existing = next((p for p in task.outputs.values() if Path(p).exists()), None)
+            if existing is not None:
+                self._foreign_count += 1
+                if len(self._foreign) < 1:
+                    self._foreign.append(existing)
 
-        Every output path is checked to be contained in the folder (no link on the way,
-        :mod:`sparsetools.io.containment`) before anything is written or removed. A frame is
-        up to date when its record names the same outputs, its inputs are unchanged and its
-        outputs are complete (``complete(task) -> bool``, default: every output file exists)
-        and, where they exist, the very files recorded (same size and mtime, or digest).
+    def begin(self, *, shared: Iterable = (), this_run: np.ndarray | None = None) -> None:
+        """Once every task is checked: refuse foreign outputs, remove (``--overwrite``) the
+        recorded outputs of frames this run does not make, write the run's record.
+
+        Parameters
+        ----------
+        shared : iterable of path-like
+            Files the run writes besides the frames' own.
+        this_run : (N,) int64
+            :func:`~sparsetools.io.frame_index.key_hash` of every frame id of the run.
         """
-        tasks = list(tasks)
-        contained = ContainedPaths(self.out)
-        for p in shared:
-            contained.check(p)
-        for t in tasks:
-            for p in t.outputs.values():
-                contained.check(p)
+        self._shared = [Path(p) for p in shared]
+        for p in self._shared:
+            self._contained.check(p)
+        foreign = list(self._foreign)
+        count = self._foreign_count
+        if not self._had_record and not self.overwrite:
+            found = [p for p in self._shared if p.exists()]
+            foreign = found + foreign
+            count += len(found)
+        if foreign:
+            more = f" (and {count - 1} more)" if count > 1 else ""
+            raise OutputError(
+                f"{foreign[0]} exists{more} but {self.out} has no record of what made it "
+                "(another tool or an older sparsetools): use --overwrite or another -o"
+            )
+        if self.overwrite:
+            ids = np.empty(0, np.int64) if this_run is None else this_run
+            self._remove_stale(ids)
+        # Nothing refused: the folder is this run's. Its record is written before any output,
+        # so an interrupted run resumes; a run that wrote nothing removes it again.
+        self._started = True
+        self._write_run()
+
+    def plan(self, tasks: Iterable, complete=None) -> Plan:
+        """Split a chunk of ``tasks`` (each checked by :meth:`check_task`, after
+        :meth:`begin`) into what to compute and what is up to date.
+
+        A frame is up to date when its record names the same outputs, its inputs are
+        unchanged and its outputs are complete (``complete(task) -> bool``, default: every
+        output file exists) and, where they exist, the very files recorded (same size and
+        mtime, or digest).
+        """
         todo, fresh, recomputed = [], [], set()
         stats: dict[str, dict] = {}
-        foreign = []
-        if not self._had_record and not self.overwrite:
-            foreign.extend(Path(p) for p in shared if Path(p).exists())
         is_complete = complete or (lambda t: all(Path(p).is_file() for p in t.outputs.values()))
-        this_run = {t.frame_id for t in tasks}
         for t in tasks:
-            rec = self.records.get(t.frame_id)
-            if self.overwrite:
-                self._take_inputs(t)
-                todo.append(t)
-                continue
+            rec = None if self.overwrite else self.index.get(t.frame_id)
+            inputs_now = self._take_inputs(t)
             if rec is None:
-                existing = [p for p in t.outputs.values() if Path(p).exists()]
-                if existing and not self._had_record:
-                    foreign.append(existing[0])
-                self._take_inputs(t)
                 todo.append(t)
                 continue
             outputs_same = rec.outputs == {r: self._rel(p) for r, p in t.outputs.items()}
-            inputs_now = self._take_inputs(t)
             inputs_same = len(inputs_now) == len(rec.inputs) and all(
                 a.same_file(b) for a, b in zip(rec.inputs, inputs_now, strict=True)
             )
             if outputs_same and inputs_same and is_complete(t) and self._outputs_intact(t, rec):
                 fresh.append(t)
                 stats[t.frame_id] = dict(rec.stats)
+                self._pending.pop(t.frame_id, None)
                 if not rec.output_ids or any(
                     a != b for a, b in zip(rec.inputs, inputs_now, strict=True)
                 ):
                     # touched but equal by hash, or a record without output identities (0.2):
                     # refresh it so the next run is cheap and checks the outputs
                     ids = {r: i for r, p in t.outputs.items() if (i := output_identity(p))}
-                    self.new_records[t.frame_id] = self._record(t, rec.stats, ids)
+                    self._append(self._record(t, inputs_now, rec.stats, ids))
                 continue
             if not inputs_same:
                 recomputed.add(t.frame_id)
             todo.append(t)
-        if foreign:
-            more = f" (and {len(foreign) - 1} more)" if len(foreign) > 1 else ""
-            raise OutputError(
-                f"{foreign[0]} exists{more} but {self.out} has no record of what made it "
-                "(another tool or an older sparsetools): use --overwrite or another -o"
-            )
-        if self.overwrite:
-            self._remove_stale(this_run)
-        # Nothing refused: the folder is this run's. Its record is written before any output,
-        # so an interrupted run resumes; a run that wrote nothing removes it again.
-        self._started = True
-        self._outputs = [p for t in tasks for p in t.outputs.values()] + [Path(p) for p in shared]
-        self._write_run()
         return Plan(todo, fresh, recomputed, stats)
 
     def _take_inputs(self, task) -> tuple[FileIdentity, ...]:
         """The identities of ``task``'s inputs now, before it runs (checked again after)."""
         ids = tuple(self.identity(p) for p in task.sources)
-        self._before[task.frame_id] = ids
+        self._pending[task.frame_id] = (task, ids)
         return ids
 
     @staticmethod
@@ -451,31 +503,27 @@ class OutputFolder:
             write_run_record(self.out, RunRecord(self.command, __version__, self.settings))
             self._run_written = True
 
-    def _remove_stale(self, this_run: set[str]) -> None:
+    def _remove_stale(self, this_run: np.ndarray) -> None:
         """With --overwrite: remove the recorded outputs of frames this run does not make;
         only regular files inside the folder (a record naming anything else is ignored)."""
-        stale = [k for k in self.records if k not in this_run]
-        n = 0
-        for k in stale:
-            for rel in self.records[k].outputs.values():
+        n = frames = 0
+        for rec in self.index.records_except(this_run):
+            frames += 1
+            for rel in rec.outputs.values():
                 p = contained_record_path(self.out, rel)
                 if p is not None and remove_output(self.out, p):
                     n += 1
-            self.dropped.add(k)
         if n:
             log.warning(
-                "--overwrite: removed %d output(s) of %d frame(s) of the previous run",
-                n,
-                len(stale),
+                "--overwrite: removed %d output(s) of %d frame(s) of the previous run", n, frames
             )
         self.removed_stale = n
 
     # -- recording -------------------------------------------------------------------------
-    def _record(self, task, stats=None, output_ids=None) -> FrameRecord:
+    def _record(self, task, inputs, stats=None, output_ids=None) -> FrameRecord:
         # Timings (``t_*``) describe one run, not the frame: they are not recorded, so the
         # record of a resumed run equals that of an uninterrupted one.
         kept = {k: v for k, v in (stats or {}).items() if not str(k).startswith("t_")}
-        inputs = self._before.get(task.frame_id)
         if inputs is None:
             inputs = tuple(self.identity(p) for p in task.sources)
         return FrameRecord(
@@ -486,11 +534,18 @@ class OutputFolder:
             dict(output_ids or {}),
         )
 
+    def _append(self, rec: FrameRecord) -> None:
+        self._write_run()
+        if self._journal is None:
+            self._journal = FrameJournal(self.out).__enter__()
+        self._journal.append(rec)
+        self.recorded += 1
+
     def record_done(self, task, stats=None, output_ids=None) -> None:
         """Record a frame whose outputs are all in place (with its statistics and the
         identities of its outputs); a frame whose inputs changed while it ran is not
         recorded (it is recomputed on the next run)."""
-        before = self._before.get(task.frame_id)
+        _, before = self._pending.get(task.frame_id, (None, None))
         if before is not None and not all(
             unchanged_since(b, p) for b, p in zip(before, task.sources, strict=True)
         ):
@@ -501,29 +556,20 @@ class OutputFolder:
             self.inputs_changed.add(task.frame_id)
             self.record_failed(task)
             return
-        rec = self._record(task, stats, output_ids)
-        self.new_records[task.frame_id] = rec
-        self._write_run()
-        if self._journal is None:
-            self._journal = FrameJournal(self.out).__enter__()
-        self._journal.append(rec)
+        self._pending.pop(task.frame_id, None)
+        self._append(self._record(task, before, stats, output_ids))
 
     def record_failed(self, task) -> None:
         """A failed frame keeps no record (it is recomputed on the next run)."""
+        self._pending.pop(task.frame_id, None)
         self.dropped.add(task.frame_id)
-        self.new_records.pop(task.frame_id, None)
+        if not self._wrote_unrecorded:
+            self._wrote_unrecorded = any(os.path.lexists(p) for p in task.outputs.values())
 
     def forget_inputs(self, task) -> None:
         """Drop cached identities of ``task``'s inputs (a job that rewrote one of them)."""
         for p in task.sources:
             self._identity_cache.pop(os.fspath(p), None)
-
-    def _compact(self) -> None:
-        records = {k: v for k, v in self.records.items() if k not in self.dropped}
-        if self.overwrite:
-            records = {}
-        records.update(self.new_records)
-        write_frame_records(self.out, records)
 
 
 class OutputFile:
