@@ -38,7 +38,7 @@ import os
 import time
 import traceback
 from array import array
-from collections.abc import Callable, Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Generic, TypeVar
@@ -596,7 +596,8 @@ def run_job(
         Per-frame results and the job's totals (:meth:`BatchJob.finish`).
     """
     batch = batch or Batch()
-    frames = list(frames)
+    if not isinstance(frames, Sequence):  # a FrameList stays compact
+        frames = list(frames)
     job = job.planned(frames)
     out = check_output_dir(out_dir, [p for p in inputs if p is not None])
     tasks = TaskStream(job, frames, out) if job.tasks_per_frame else job.tasks(frames, out)

@@ -312,6 +312,7 @@ class OutputFolder:
         self._folders: dict[str, str] = {}  # resolved input folders, for file_identity
         self._out_prefix = os.path.join(os.path.abspath(self.out), "")
         self._contained = ContainedPaths(self.out)
+        self._absent_dirs: set[str] = set()  # output folders missing when the tasks were checked
         self._lock = None
         self._journal = None
         self.removed_stale = 0
@@ -400,10 +401,18 @@ class OutputFolder:
         """Before anything is written: every output of ``task`` is contained in the folder (no
         link on the way, :mod:`sparsetools.io.containment`); in a folder without a record,
         an existing output is noted as foreign (refused by :meth:`begin`)."""
+        existing = None
         for p in task.outputs.values():
-            self._contained.check(p)
+            full = os.path.abspath(p)
+            parent = os.path.dirname(full)
+            if parent in self._absent_dirs and full.startswith(self._out_prefix):
+                continue  # below a folder that does not exist yet: nothing there or in the way
+            self._contained.check(full)
+            if not os.path.lexists(parent):
+                self._absent_dirs.add(parent)
+            elif existing is None and os.path.exists(full):
+                existing = p
         if not self._had_record and not self.overwrite:
-            existing = next((p for p in task.outputs.values() if Path(p).exists()), None)
             if existing is not None:
                 self._foreign_count += 1
                 if len(self._foreign) < 1:

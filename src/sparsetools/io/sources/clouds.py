@@ -4,13 +4,15 @@ files and folders, KITTI raw drives / date folders, a KITTI object root, or a nu
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 from ...errors import FormatError, ParameterError, UsageError
-from .frame import Frame, FrameKey
+from .frame import Frame, FrameKey, FrameList
 from .index import attach, index_input
 from .nuscenes import nuscenes_frames
+from .tree import FileMap
 
 __all__ = ["CloudSource", "cloud_frames", "cloud_source"]
 
@@ -22,8 +24,9 @@ def cloud_frames(
     image: str | os.PathLike | None = None,
     camera: int = 2,
     option: str = "CLOUD",
-) -> list[Frame]:
-    """Frames of point-cloud inputs (files, folders, KITTI raw / object trees), sorted by key.
+) -> Sequence[Frame]:
+    """Frames of point-cloud inputs (files, folders, KITTI raw / object trees), sorted by key
+    (a :class:`FrameList` for one folder of clouds).
 
     The layout's own calibration and image (KITTI raw date folder, KITTI object
     ``calib/``, ``image_2/``) come with the frames; ``calib`` and ``image`` replace them:
@@ -38,6 +41,18 @@ def cloud_frames(
 
     if not paths:
         raise ParameterError("no point clouds given")
+    if len(paths) == 1:
+        index = index_input(paths[0], "cloud", option=option, camera=camera)
+        if isinstance(index.files, FileMap) and not (index.calib or index.images or index.splits):
+            # a folder of clouds: held compactly (a million frames in ~100 MB less)
+            out = FrameList(index.files, field="cloud")
+            if calib is not None:
+                out, _ = attach(out, calib, "calib", role="calib", option="--calib",
+                                camera=camera)  # fmt: skip
+            if image is not None:
+                out, _ = attach(out, image, "image", role="image", option="--image",
+                                camera=camera)  # fmt: skip
+            return out
     frames: dict[FrameKey, Frame] = {}
     for path in paths:
         index = index_input(path, "cloud", option=option, camera=camera)
@@ -69,8 +84,9 @@ class CloudSource:
 
     Attributes
     ----------
-    frames : list of Frame
-        Sorted by key, each with a calibration (file, KITTI raw folder, or computed).
+    frames : sequence of Frame
+        Sorted by key, each with a calibration (file, KITTI raw folder, or computed); a
+        :class:`FrameList` for one folder of clouds.
     camera : int or str
         The camera the maps are for: a KITTI index, a nuScenes channel, or a camera name of
         JSON calibrations.
@@ -78,7 +94,7 @@ class CloudSource:
         The paths the user gave (the output folder may not be inside one of them).
     """
 
-    frames: list[Frame]
+    frames: Sequence[Frame]
     camera: int | str
     inputs: tuple[Path, ...]
 

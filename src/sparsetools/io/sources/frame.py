@@ -11,12 +11,13 @@ from __future__ import annotations
 
 import os
 import re
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 
 from ...errors import ParameterError
 
-__all__ = ["Frame", "FrameKey", "Sweep", "check_key_part"]
+__all__ = ["PATH_FIELDS", "Frame", "FrameKey", "FrameList", "Sweep", "check_key_part"]
 
 _BAD_PART = re.compile(r"[\x00-\x1f\\]")
 
@@ -38,7 +39,7 @@ def check_key_part(text: str, what: str) -> str:
     return text
 
 
-@dataclass(frozen=True, order=True)
+@dataclass(frozen=True, order=True, slots=True)
 class FrameKey:
     """Identity of one frame: ``sequence`` (``""`` for flat inputs) and ``frame``.
 
@@ -57,6 +58,15 @@ class FrameKey:
 
     def __str__(self) -> str:
         return f"{self.sequence}/{self.frame}" if self.sequence else self.frame
+
+    @classmethod
+    def checked(cls, sequence: str, frame: str) -> FrameKey:
+        """A key of parts already checked (by the index that holds them): made without
+        checking them again."""
+        key = object.__new__(cls)
+        object.__setattr__(key, "sequence", sequence)
+        object.__setattr__(key, "frame", frame)
+        return key
 
     @classmethod
     def parse(cls, text: str) -> FrameKey:
@@ -152,3 +162,56 @@ class Frame:
         out.extend(s.path for s in self.sweeps)
         out.extend(self.extra_inputs)
         return tuple(out)
+
+
+#: Frame fields holding one input file's path.
+PATH_FIELDS = ("cloud", "image", "depth", "gt", "mask", "calib")
+
+
+class FrameList(Sequence[Frame]):
+    """The frames of a batch held compactly: a :class:`Frame` is made when one is asked for.
+
+    A million frames as :class:`Frame` objects with :class:`~pathlib.Path` fields take about
+    1 KB each; here a frame is its key's and file's strings in the :class:`FileMap` it came
+    from plus what every frame shares (a calibration file given once), about 100 bytes
+    (issue 28). Slicing gives a list of frames.
+
+    Parameters
+    ----------
+    files : FileMap
+        Frame key -> file, in key order.
+    field : str
+        The :class:`Frame` field the files fill (``cloud``, ``image``, ...).
+    shared : mapping, optional
+        Field -> value every frame has.
+    """
+
+    def __init__(self, files, *, field: str = "cloud", shared: Mapping | None = None):
+        self.files = files
+        self.field = field
+        self.shared = dict(shared or {})
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def _frame(self, i: int) -> Frame:
+        key, path = self.files.item_at(i)
+        return Frame(key=key, **{self.field: path}, **self.shared)
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            return [self._frame(j) for j in range(*i.indices(len(self)))]
+        n = len(self)
+        if i < 0:
+            i += n
+        if not 0 <= i < n:
+            raise IndexError("frame index out of range")
+        return self._frame(i)
+
+    def __iter__(self) -> Iterator[Frame]:
+        for i in range(len(self)):
+            yield self._frame(i)
+
+    def with_shared(self, **values) -> FrameList:
+        """These frames with ``values`` (field -> value) given to every frame."""
+        return FrameList(self.files, field=self.field, shared={**self.shared, **values})

@@ -7,7 +7,7 @@ import os
 from pathlib import Path
 
 from ...errors import FormatError, ParameterError
-from .frame import Frame, FrameKey
+from .frame import Frame, FrameKey, FrameList
 from .kitti import (
     is_kitti_depth_completion,
     is_kitti_object,
@@ -156,6 +156,8 @@ def attach(
     if (p.is_file() or (field == "calib" and is_kitti_raw_calib_dir(p))) and (
         shared_ok or len(frames) == 1
     ):
+        if isinstance(frames, FrameList):
+            return frames.with_shared(**{field: p}), 0
         return [replace(f, **{field: p}) for f in frames], 0
     if p.is_file():
         raise ParameterError(

@@ -9,6 +9,7 @@ would be one frame (``x.png`` and ``x.jpg``) are an error naming both.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import os
 import re
@@ -20,7 +21,7 @@ from pathlib import Path
 from ...errors import FormatError, ParameterError
 from ..atomic import TMP_PREFIX
 from ..provenance import RECORD_DIR, recorded_outputs
-from .frame import FrameKey
+from .frame import FrameKey, check_key_part
 
 __all__ = [
     "CALIB_SUFFIXES",
@@ -43,6 +44,9 @@ CALIB_SUFFIXES = (".txt", ".json")
 #: Companion files named after a frame: ``<frame>_conf`` (jbf-expand confidence) and
 #: ``<frame>_sweep<k>`` (single radar sweeps beside their merged frame).
 _COMPANION = re.compile(r"^(?P<frame>.+)_(conf|sweep\d+)$")
+#: What a file name may hold that a frame name may not (a file's name has no ``/``, and names
+#: starting with ``.`` are skipped before).
+_BAD_NAME = re.compile(r"[\x00-\x1f\\]")
 
 
 def file_stem(path: str | os.PathLike) -> str:
@@ -51,6 +55,69 @@ def file_stem(path: str | os.PathLike) -> str:
     if name.lower().endswith(".pcd.bin"):
         return name[: -len(".pcd.bin")]
     return name[: -len(Path(name).suffix)] if Path(name).suffix else name
+
+
+class FileMap(Mapping[FrameKey, Path]):
+    """Frame key -> file, in key order, about 100 bytes per frame (issue 28).
+
+    What an index of a million files holds as ``dict[FrameKey, Path]`` takes about 600 bytes
+    per file; here each file is its folder (shared by the folder's files), its sequence
+    (shared) and its name: keys and paths are made when asked for. Lookups by key bisect the
+    sorted keys.
+
+    Parameters
+    ----------
+    entries : iterable of (sequence, frame, folder, name)
+        Frame parts already checked; no two with one (sequence, frame).
+    """
+
+    __slots__ = ("_folders", "_frames", "_names", "_sequences")
+
+    def __init__(self, entries: Iterable[tuple[str, str, str, str]]):
+        rows = sorted(entries)
+        self._sequences = [r[0] for r in rows]
+        self._frames = [r[1] for r in rows]
+        self._folders = [r[2] for r in rows]
+        self._names = [r[3] for r in rows]
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    def item_at(self, i: int) -> tuple[FrameKey, Path]:
+        """The ``i``-th (key, file) in key order."""
+        return (FrameKey.checked(self._sequences[i], self._frames[i]),
+                Path(self._folders[i], self._names[i]))  # fmt: skip
+
+    def _find(self, key) -> int:
+        if not isinstance(key, FrameKey):
+            return -1
+        target = (key.sequence, key.frame)
+        lo, hi = 0, len(self._frames)
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if (self._sequences[mid], self._frames[mid]) < target:
+                lo = mid + 1
+            else:
+                hi = mid
+        if lo < len(self._frames) and (self._sequences[lo], self._frames[lo]) == target:
+            return lo
+        return -1
+
+    def __getitem__(self, key: FrameKey) -> Path:
+        i = self._find(key)
+        if i < 0:
+            raise KeyError(key)
+        return Path(self._folders[i], self._names[i])
+
+    def __contains__(self, key) -> bool:
+        return self._find(key) >= 0
+
+    def __iter__(self):
+        for seq, frame in zip(self._sequences, self._frames, strict=True):
+            yield FrameKey.checked(seq, frame)
+
+    def items(self):
+        return (self.item_at(i) for i in range(len(self)))
 
 
 @dataclass(frozen=True)
@@ -198,25 +265,60 @@ def index_tree(
                 files[FrameKey.parse(k)] = p
         if files:
             return FileIndex(root, files, layout="sparsetools")
-    files: dict[FrameKey, Path] = {}
+    rows: list[tuple[str, str, str, str]] = []
     for dirpath, dirnames, filenames in walk_once(root):
         dirnames[:] = sorted(d for d in dirnames if not d.startswith(".") and d != RECORD_DIR)
-        rel = Path(dirpath).relative_to(root).as_posix()
+        rel = os.path.relpath(dirpath, root).replace(os.sep, "/")
         sequence = "" if rel == "." else rel
-        for name in sorted(filenames):
+        try:
+            check_key_part(sequence, "sequence name")
+        except ParameterError as exc:
+            raise FormatError(f"{option}: {dirpath}: {exc}") from exc
+        for name in filenames:
             if name.startswith(".") or name.startswith(TMP_PREFIX):
                 continue
-            if not _suffix_ok(name, suffixes) or not (Path(dirpath) / name).is_file():
+            if not _suffix_ok(name, suffixes) or not os.path.isfile(os.path.join(dirpath, name)):
                 continue  # a dangling link or a special file is not a frame
-            try:
-                key = FrameKey(sequence, file_stem(name))
-            except ParameterError as exc:
-                raise FormatError(f"{option}: {Path(dirpath) / name}: {exc}") from exc
-            _add(files, key, Path(dirpath) / name, option)
-    files = _drop_companions(files)
-    if not files:
+            frame = file_stem(name)
+            if not frame or _BAD_NAME.search(frame):
+                try:
+                    FrameKey(sequence, frame)
+                except ParameterError as exc:
+                    raise FormatError(f"{option}: {Path(dirpath) / name}: {exc}") from exc
+            rows.append((sequence, frame, dirpath, name))
+    rows = _drop_companion_rows(_unique_rows(rows, option))
+    if not rows:
         raise FormatError(f"{option}: no {'/'.join('*' + s for s in suffixes)} files in {root}")
-    return FileIndex(root, dict(sorted(files.items())), layout="tree")
+    return FileIndex(root, FileMap(rows), layout="tree")
+
+
+def _unique_rows(rows: list, option: str) -> list:
+    """``rows`` sorted by key; two files of one frame (``x.png`` and ``x.jpg``) refused."""
+    rows.sort()
+    for a, b in itertools.pairwise(rows):
+        if a[:2] == b[:2]:
+            key = FrameKey.checked(a[0], a[1])
+            raise FormatError(
+                f"{option}: {Path(a[2], a[3])} and {Path(b[2], b[3])} are the same frame "
+                f"'{key}': keep one of them or give the folders separately"
+            )
+    return rows
+
+
+def _drop_companion_rows(rows: list) -> list:
+    """Companion files (``<frame>_conf``, ``<frame>_sweep<k>``) of a frame that is present are
+    not frames."""
+    keys = None
+    out = []
+    for r in rows:
+        m = _COMPANION.match(r[1])
+        if m:
+            if keys is None:
+                keys = {(row[0], row[1]) for row in rows}
+            if (r[0], m["frame"]) in keys:
+                continue
+        out.append(r)
+    return out
 
 
 def match_keys(keys: Iterable[FrameKey], index: Mapping[FrameKey, Path]) -> dict[FrameKey, Path]:
