@@ -27,9 +27,11 @@ from .options import (
 )
 @output_dir_option
 @method_option(
-    ["ip-basic", "nearest", "linear"],
+    ["ip-basic", "nearest", "linear", "learned"],
     default="ip-basic",
-    help="IP-Basic (Ku et al. 2018), nearest measurement, or linear on the Delaunay triangles.",
+    help="IP-Basic (Ku et al. 2018), nearest measurement, linear on the Delaunay triangles, "
+    "or the learned densifier of train-densifier (with --model; SpaDe-style, with "
+    "uncertainty).",
 )
 @click.option(
     "--variant",
@@ -65,6 +67,19 @@ from .options import (
     show_default=True,
     help="Linear fill outside the convex hull of the measurements: nearest one, or 0.",
 )
+@click.option(
+    "--model",
+    type=click.Path(path_type=Path),
+    metavar="CHECKPOINT",
+    help="--method learned: the densifier checkpoint (densifier.pt of train-densifier, or its "
+    "run folder).",
+)
+@click.option(
+    "--uncertainty",
+    is_flag=True,
+    help="--method learned: also write OUT/uncertainty/<sequence>/<frame>.npy, float32 "
+    "U = log sigma^2 per pixel (sigma in metres: sigma = exp(U / 2); no scale, no offset).",
+)
 @format_option(
     ["png", "npy"],
     default="png",
@@ -73,8 +88,9 @@ from .options import (
 @deprecated("--max-depth", "--inversion-offset", command="densify", dest="inversion_offset")
 @batch_options
 def densify(sparse, out_dir, method, variant, extrapolate, multiscale, inversion_offset, outside,
-            fmt, batch, as_json):  # fmt: skip
-    """Complete sparse depth maps: IP-Basic (as published) or the nearest / linear baselines.
+            model, uncertainty, fmt, batch, as_json):  # fmt: skip
+    """Complete sparse depth maps: IP-Basic (as published), the nearest / linear baselines, or
+    the learned densifier.
 
     SPARSE: depth maps (KITTI uint16 PNG or .npy metres), folders of them, the output of
     project / beams / jbf-expand / accumulate, or a KITTI depth-completion tree
@@ -83,6 +99,10 @@ def densify(sparse, out_dir, method, variant, extrapolate, multiscale, inversion
     measured in the input, 0 = filled in or no estimate). A rerun skips frames that are up
     to date, recomputes those whose input changed and refuses other settings.
 
+    --method learned --model CHECKPOINT runs a densifier trained by `train-densifier` (one
+    torch thread per worker; every pixel gets a depth) and with --uncertainty writes its
+    log-variance map U beside the depth (docs/densify.md: how far to trust each pixel).
+
     \b
     Examples:
       sparsetools project sample_data/synthetic/velodyne --calib sample_data/synthetic/calib \\
@@ -90,20 +110,61 @@ def densify(sparse, out_dir, method, variant, extrapolate, multiscale, inversion
       sparsetools densify out/depth -o out/dense                    # the paper's version
       sparsetools densify out/depth -o out/dense_ms --multiscale --variant bilateral
       sparsetools densify out/radar -o out/radar_nearest --method nearest
+      sparsetools train-densifier -o out/densifier --threads 1
+      sparsetools densify out/depth -o out/dense_learned --method learned \\
+          --model out/densifier/densifier.pt --uncertainty
     """
     from ..io.sources import depth_frames
     from ..ops.densify import DensifySettings
     from ..pipeline import run_job
-    from ..pipeline.densify import DensifyJob
+    from ..pipeline.densify import DensifyJob, LearnedSettings
 
+    learned, densifier = _learned_method(method, model, uncertainty)
     settings = DensifySettings(
-        method=method,
+        method="ip-basic" if learned else method,
         variant=variant,
         extrapolate=extrapolate,
         multiscale=multiscale,
         max_depth=inversion_offset,
         outside=outside,
     )
-    summary = run_job(DensifyJob(settings, fmt), depth_frames(sparse), out_dir, batch=batch,
-                      inputs=sparse)  # fmt: skip
+    if learned:
+        learned = LearnedSettings(str(densifier.path.resolve()), uncertainty)
+    job = DensifyJob(settings, fmt, learned=learned or None, model=densifier)
+    summary = run_job(job, depth_frames(sparse), out_dir, batch=batch, inputs=sparse)
     emit_summary(summary, as_json=as_json, title=f"dense depth maps in {out_dir}")
+
+
+#: Options of the classical methods (refused with --method learned when given).
+_CLASSICAL = ("variant", "extrapolate", "multiscale", "inversion_offset", "outside")
+
+
+def _learned_method(method, model, uncertainty):
+    """(True, the loaded model) for --method learned, else (False, None); options that do not
+    go with the method are usage errors."""
+    from click.core import ParameterSource
+
+    ctx = click.get_current_context()
+
+    def given(name):
+        return ctx.get_parameter_source(name) not in (None, ParameterSource.DEFAULT)
+
+    if method != "learned":
+        for name in ("model", "uncertainty"):
+            if given(name):
+                raise click.UsageError(f"--{name} belongs to --method learned")
+        return False, None
+    if model is None:
+        raise click.UsageError("--method learned needs --model CHECKPOINT (train-densifier "
+                               "writes one)")  # fmt: skip
+    for name in _CLASSICAL:
+        if given(name):
+            flag = "--" + name.replace("_", "-")
+            raise click.UsageError(f"{flag} is an option of the classical methods, not of "
+                                   "--method learned")  # fmt: skip
+    from ..train._torch_required import require_torch
+
+    require_torch("densify --method learned")
+    from ..train.densifier import LearnedDensifier
+
+    return True, LearnedDensifier(model, threads=1)

@@ -34,6 +34,7 @@ COMMANDS = {
     "viz": "viz:viz",
     "stats": "stats:stats",
     "train": "train:train",
+    "train-densifier": "train_densifier:train_densifier",
     "eval": "eval:eval_",
     "predict": "predict:predict",
     "pipeline": "pipeline:pipeline",

@@ -44,6 +44,7 @@ __all__ = [
     "int_list",
     "json_option",
     "layout_option",
+    "lr_option",
     "max_depth_option",
     "min_depth_option",
     "named_split",
@@ -65,6 +66,7 @@ __all__ = [
     "verbose_option",
     "video_option",
     "warn_deprecated",
+    "width_option",
 ]
 
 
@@ -246,6 +248,29 @@ def seed_option(f=None, *, default: int = 0, help: str | None = None):
     def deco(fn):
         return click.option(
             "--seed", type=int, default=default, show_default=True, help=help or "Random seed."
+        )(fn)
+
+    return deco(f) if f is not None else deco
+
+
+def lr_option(f=None, *, default: float = 1e-3, help: str = "Learning rate."):
+    """``--lr``: the (initial) learning rate of a training command."""
+
+    def deco(fn):
+        return click.option(
+            "--lr", type=click.FloatRange(min=0, min_open=True), default=default,
+            show_default=True, help=help,
+        )(fn)  # fmt: skip
+
+    return deco(f) if f is not None else deco
+
+
+def width_option(f=None, *, default: int, help: str):
+    """``--width``: channels of a network's first level."""
+
+    def deco(fn):
+        return click.option(
+            "--width", type=click.IntRange(min=1), default=default, show_default=True, help=help
         )(fn)
 
     return deco(f) if f is not None else deco

@@ -14,6 +14,7 @@ from .options import (
     emit_summary,
     int_list,
     json_option,
+    lr_option,
     max_depth_option,
     output_dir_option,
     pair,
@@ -22,6 +23,7 @@ from .options import (
     seed_option,
     size_wxh,
     threads_option,
+    width_option,
 )
 
 #: ``--input`` choices (the channels of each: docs/train.md).
@@ -274,13 +276,7 @@ def selfsup_options(f):
 )
 @click.option("--epochs", type=click.IntRange(min=1), default=20, show_default=True)
 @batch_size_option(default=8)
-@click.option(
-    "--lr",
-    type=click.FloatRange(min=0, min_open=True),
-    default=1e-3,
-    show_default=True,
-    help="Learning rate.",
-)
+@lr_option
 @click.option("--optimizer", type=click.Choice(["adam", "sgd"]), default="adam", show_default=True)
 @click.option(
     "--lr-schedule",
@@ -313,13 +309,7 @@ def selfsup_options(f):
 )
 @deprecated("--crop", "--crop-size", command="train", dest="crop_size", convert=hxw_as_wxh)
 @seed_option(help="Seed of the weights, sample order and augmentation.")
-@click.option(
-    "--width",
-    type=click.IntRange(min=1),
-    default=32,
-    show_default=True,
-    help="Width of the first level (32 gives 32-64-128-256-512).",
-)
+@width_option(default=32, help="Width of the first level (32 gives 32-64-128-256-512).")
 @click.option(
     "--lidar-encoder",
     type=click.Choice(["none", "sfe", "dense"]),

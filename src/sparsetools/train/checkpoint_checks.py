@@ -37,8 +37,12 @@ __all__ = [
 CHECKPOINT_FORMAT = "sparsetools-depth-checkpoint"
 
 
-def read_checkpoint_file(path: Path) -> dict:
-    """The checkpoint's top-level dict: torch's zip format only, read with weights_only."""
+def read_checkpoint_file(
+    path: Path, *, expected: str = CHECKPOINT_FORMAT, what: str = "sparsetools depth checkpoint"
+) -> dict:
+    """The checkpoint's top-level dict: torch's zip format only, read with weights_only, whose
+    ``format`` tag is ``expected`` (else "not a ``what``"; the densifier of
+    :mod:`.densifier` has its own tag)."""
     try:
         is_zip = zipfile.is_zipfile(path)
     except OSError as exc:
@@ -58,8 +62,8 @@ def read_checkpoint_file(path: Path) -> dict:
         raise FormatError(
             f"{path}: not a readable torch checkpoint ({type(exc).__name__})"
         ) from exc
-    if not isinstance(raw, dict) or raw.get("format") != CHECKPOINT_FORMAT:
-        raise FormatError(f"{path}: not a sparsetools depth checkpoint")
+    if not isinstance(raw, dict) or raw.get("format") != expected:
+        raise FormatError(f"{path}: not a {what}")
     return raw
 
 
