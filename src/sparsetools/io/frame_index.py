@@ -126,8 +126,14 @@ class FrameIndex:
 
     def records_except(self, hashes: np.ndarray) -> Iterator[FrameRecord]:
         """The records whose key hash is not in ``hashes`` (frames another run made)."""
-        others = ~np.isin(self.hashes, hashes)
-        for off in self.offsets[others]:
+        yield from self._records(~np.isin(self.hashes, hashes))
+
+    def records_in(self, hashes: np.ndarray) -> Iterator[FrameRecord]:
+        """The records whose key hash is in ``hashes``, in key-hash order."""
+        yield from self._records(np.isin(self.hashes, hashes))
+
+    def _records(self, which: np.ndarray) -> Iterator[FrameRecord]:
+        for off in self.offsets[which]:
             rec = self._read(int(off))
             if rec is not None:
                 yield rec

@@ -347,6 +347,7 @@ class DatasetJob(BatchJob[DatasetFrameInput]):
     command = "dataset build"
     noun = "a dataset"
     stats_type = DatasetFrameStats
+    tasks_per_frame = True
 
     settings: BuildSettings
     unmatched: Mapping[str, int] = field(default_factory=dict)

@@ -106,12 +106,15 @@ def merge_staged(
         return _counts(old_rows)
 
     new_rows: list[ManifestRow] = []
-    points_of: dict[str, tuple] = {}
+    # where each frame's points are: read again a part at a time (a build of a million frames
+    # never holds every frame's points)
+    points_of: dict[str, Path] = {}
     for p in staged_files:
         row, points = read_staged(p)
         new_rows.append(row)
         if points is not None:
-            points_of[row.id] = points
+            points_of[row.id] = p
+        del points
     gone = {r.id for r in new_rows} | {r.id for r in dropped}
     kept = [r for r in old_rows if r.id not in gone]
     # What changes in a row (its split, its part and row there, its frame_index), by id.
@@ -180,9 +183,9 @@ def merge_staged(
     with_points = sorted(fid for fid in points_of if fid in size_of)
     for start in range(0, len(with_points), frames_per_part):
         ids = with_points[start : start + frames_per_part]
-        new_part(
-            sparse_part_table(ids, [points_of[i] for i in ids], [size_of[i] for i in ids]), ids
-        )
+        points = [read_staged(points_of[i])[1] for i in ids]
+        new_part(sparse_part_table(ids, points, [size_of[i] for i in ids]), ids)
+        del points
 
     drop_stale_points = _merge_points(
         out, contained, old_rows, kept, new_rows, gone, changes, frames_per_part

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+from array import array
 from collections import Counter, defaultdict
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -26,6 +27,7 @@ from ...io.dataset import (
 )
 from ...io.dataset_parts import part_rows, read_sparse_part
 from ...io.depth_files import decode_confidence_bytes, decode_depth_bytes
+from ...io.frame_index import key_hash
 from ...validate import check_int_range
 from .references import decode_rgb as _decode_rgb
 from .references import verify_reference as _verify_reference
@@ -276,15 +278,24 @@ def verify_dataset(
     # The manifest is walked in chunks and each row's result folded at once: what is kept per
     # sample is its id and sequence, and only for samples with a Parquet part the row and the
     # valid pixels of its PNG (to compare the two), not every row object and decoded map.
-    ids: set[str] = set()
+    ids = array("q")  # key hashes of the samples, for the journal (8 bytes each)
     pngs: dict = {}
     ref_status: Counter = Counter()
+    # a part is compared as soon as its last sample is seen (a build writes a part's samples
+    # together): only the parts in progress hold rows and valid pixels
+    remaining = _rows_per_part(table)
     by_part: dict[str, list[ManifestRow]] = defaultdict(list)
+    part_problems: dict[str, list[str]] = {}
     seq_splits: dict[str, set] = defaultdict(set)
     referenced: set[str] = set()  # reference-stored images: checked where they are now
 
     def one(r):
         return _verify_row(root, r, check_hashes, where)
+
+    def part_done(rel: str) -> None:
+        rows = by_part.pop(rel)
+        own = {r.id: pngs.pop(r.id) for r in rows if r.id in pngs}
+        part_problems[rel] = _verify_part(root, rel, rows, own, check_hashes)
 
     pool = ThreadPoolExecutor(max_workers=threads) if threads > 1 else None
     try:
@@ -296,19 +307,25 @@ def verify_dataset(
                 warnings.extend(warns)
                 if status is not None:
                     ref_status[status] += 1
-                ids.add(r.id)
+                ids.append(key_hash(r.id))
                 seq_splits[r.sequence].add(r.split)
                 if r.sparse_parquet is not None:
-                    by_part[r.sparse_parquet].append(r)
+                    rel = r.sparse_parquet
+                    by_part[rel].append(r)
                     if png is not None:
                         pngs[r.id] = _valid_pixels(png)
+                    remaining[rel] -= 1
+                    if remaining[rel] == 0:
+                        part_done(rel)
                 if r.rgb_root is not None and r.rgb_root in recorded:
                     referenced.add(os.path.realpath(Path(recorded[r.rgb_root], r.rgb_path)))
     finally:
         if pool is not None:
             pool.shutdown()
-    for rel in sorted(by_part):
-        problems.extend(_verify_part(root, rel, by_part[rel], pngs, check_hashes))
+    for rel in list(by_part):
+        part_done(rel)
+    for rel in sorted(part_problems):
+        problems.extend(part_problems[rel])
     for seq in sorted(seq_splits):
         if len(seq_splits[seq]) > 1:
             warnings.append(
@@ -317,7 +334,7 @@ def verify_dataset(
     sparse_dir = root / SPARSE_DIR
     if sparse_dir.is_dir():
         for p in sorted(sparse_dir.glob("part-*.parquet")):
-            if f"{SPARSE_DIR}/{p.name}" not in by_part:
+            if f"{SPARSE_DIR}/{p.name}" not in part_problems:
                 warnings.append(f"{SPARSE_DIR}/{p.name} is not referenced by the manifest")
     if (root / STAGING).is_dir():
         warnings.append(
@@ -346,33 +363,49 @@ def verify_dataset(
     )
 
 
-def _changed_inputs(root: Path, ids: set[str], skip: set[str] = frozenset()) -> tuple[list, list]:
+def _rows_per_part(table) -> Counter:
+    """Manifest rows per ``sparse_parquet`` part (rows without one are not counted)."""
+    import pyarrow.compute as pc
+
+    counts = Counter()
+    if "sparse_parquet" not in table.column_names:
+        return counts
+    for item in pc.value_counts(table.column("sparse_parquet")).to_pylist():
+        if item["values"] is not None:
+            counts[item["values"]] = item["counts"]
+    return counts
+
+
+def _changed_inputs(root: Path, ids, skip: set[str] = frozenset()) -> tuple[list, list]:
     """(sample, input) pairs whose input file differs from the build's record, and those
     whose input is gone (inputs at the paths ``skip`` left out), by sample. A dataset without
     a record (older sparsetools) reports none.
 
-    The journal is read twice, streamed: first where each sample's last line is (the last line
-    of a key wins), then those lines are checked; inputs shared by many samples (a calibration)
-    are looked at once (a bounded cache), so nothing is held per sample but a line number."""
+    ``ids`` holds the samples' key hashes (:func:`~sparsetools.io.frame_index.key_hash`). The
+    journal is read through its index (the last valid line of a key wins; 16 bytes per
+    sample); inputs shared by many samples (a calibration) are looked at once (a bounded
+    cache)."""
     from functools import lru_cache
 
-    from ...io.provenance import file_identity, iter_frame_records
+    from ...io.frame_index import FrameIndex
+    from ...io.provenance import file_identity
 
     changed, gone = [], []
     try:
-        last = {rec.key: i for i, rec in enumerate(iter_frame_records(root)) if rec.key in ids}
-        identity = lru_cache(maxsize=4096)(file_identity)
-        for i, rec in enumerate(iter_frame_records(root)):
-            if last.get(rec.key) != i:
-                continue
-            for old in rec.inputs:
-                if old.path in skip:
-                    continue
-                now = identity(old.path)
-                if now.size < 0:
-                    gone.append((rec.key, old.path))
-                elif not old.same_file(now):
-                    changed.append((rec.key, old.path))
+        index = FrameIndex(root)
+        try:
+            identity = lru_cache(maxsize=4096)(file_identity)
+            for rec in index.records_in(np.frombuffer(ids, dtype=np.int64)):
+                for old in rec.inputs:
+                    if old.path in skip:
+                        continue
+                    now = identity(old.path)
+                    if now.size < 0:
+                        gone.append((rec.key, old.path))
+                    elif not old.same_file(now):
+                        changed.append((rec.key, old.path))
+        finally:
+            index.close()
     except (FormatError, OSError):
         return [], []
     # by sample, as before (a stable sort: a sample's inputs keep their order)
