@@ -96,6 +96,10 @@ _SELFSUP_FIELDS = {
     "lidar_dropout": "lidar_dropout",
     "lidar_holdout": "lidar_holdout",
     "select_by": "select_by",
+    "pbr": "pbr",
+    "pbr_coordinates": "pbr_coordinates",
+    "pbr_weight": "pbr_weight",
+    "pbr_discriminator_weight": "pbr_discriminator_weight",
 }
 
 
@@ -247,6 +251,37 @@ def selfsup_options(f):
             show_default=True,
             help="Self-supervised: best.pt by the validation photometric loss (reads no ground "
             "truth) or by the validation RMSE against ground truth.",
+        ),
+        click.option(
+            "--pbr",
+            metavar="REFERENCE",
+            default=None,
+            help="Self-supervised (RNW): priors-based regularization, a PatchGAN discriminator "
+            "between the predicted depth and unpaired reference depths: the ground truth (or "
+            "dense depth) of the dataset REFERENCE (docs/selfsup.md).",
+        ),
+        click.option(
+            "--pbr-coordinates/--no-pbr-coordinates",
+            default=True,
+            show_default=True,
+            help="Self-supervised, --pbr: the discriminator also sees the pixel coordinates "
+            "(RNW's I_p).",
+        ),
+        click.option(
+            "--pbr-weight",
+            type=click.FloatRange(min=0),
+            default=0.01,
+            show_default=True,
+            help="Self-supervised, --pbr: xi, weight of the adversarial term in the depth "
+            "network's loss.",
+        ),
+        click.option(
+            "--pbr-discriminator-weight",
+            type=click.FloatRange(min=0, min_open=True),
+            default=1.0,
+            show_default=True,
+            help="Self-supervised, --pbr: tau, weight of the discriminator's loss (its own "
+            "optimizer: a learning-rate factor with SGD, nearly none with Adam).",
         ),
     ]
     for d in reversed(decorators):
@@ -405,6 +440,7 @@ def train(ctx, dataset, out_dir, resume, as_json, self_supervised, **options):
       sparsetools train out/ds -o out/run_ss --self-supervised --input rgb --width 8
       sparsetools train out/ds -o out/run_ss4 --self-supervised --sparse-loss silog
       sparsetools train out/ds -o out/sfe --self-supervised --sparse-loss silog --lidar-encoder sfe
+      sparsetools train out/ds_night -o out/pbr --self-supervised --mcie --sbm --pbr out/ds_day
       sparsetools train out/ds -o out/run_sfe_sup --lidar-encoder sfe --width 16
       sparsetools train out/nus -o out/run_radar --input d
       sparsetools train out/nus_jbf -o out/run_jbf --input rgbdc

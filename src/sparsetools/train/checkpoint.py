@@ -12,9 +12,10 @@ A run folder holds::
 A checkpoint file is a plain dict of tensors, numbers and strings (``torch.load(path,
 weights_only=True)`` reads it): format tag and version, kind (``supervised`` or
 ``self-supervised``), the configuration, the depth model's constructor arguments and weights,
-for self-supervised runs the pose network and the SBM threshold, the optimizer state, the
-position in training (:class:`TrainingState`) and the torch RNG state. :func:`load_checkpoint`
-checks it and returns a typed :class:`Checkpoint`.
+for self-supervised runs the pose network and the SBM threshold (with PBR the discriminator,
+its configuration and its optimizer), the optimizer state, the position in training
+(:class:`TrainingState`) and the torch RNG state. :func:`load_checkpoint` checks it and returns
+a typed :class:`Checkpoint`.
 
 A checkpoint file is untrusted input. :func:`load_checkpoint` refuses, with one
 :class:`FormatError` naming the file, anything but torch's zip format read with
@@ -53,6 +54,7 @@ from ..errors import FormatError, OutputError, ParameterError
 from .checkpoint_checks import (
     CHECKPOINT_FORMAT,
     check_agreement,
+    check_discriminator,
     check_extras,
     check_model_config,
     check_pose_config,
@@ -241,6 +243,9 @@ class Checkpoint:
     sbm_threshold : float or None
         The running SBM threshold (self-supervised runs with ``sbm``; None before its first
         batch).
+    discriminator_config, discriminator, discriminator_optimizer : dict or None
+        PBR's discriminator (self-supervised runs with ``pbr``): constructor arguments,
+        weights and its optimizer's state.
     run_id : str or None
         The run the checkpoint belongs to (None: written by sparsetools 0.2.0, before run ids).
     """
@@ -257,6 +262,9 @@ class Checkpoint:
     pose_model: dict | None = None
     sbm_threshold: float | None = None
     run_id: str | None = None
+    discriminator_config: dict | None = None
+    discriminator: dict | None = None
+    discriminator_optimizer: dict | None = None
 
     @property
     def input_mode(self) -> str:
@@ -332,9 +340,11 @@ def save_checkpoint(
     pose_model: torch.nn.Module | None = None,
     sbm_threshold: float | None = None,
     run_id: str | None = None,
+    discriminator: torch.nn.Module | None = None,
+    discriminator_optimizer: torch.optim.Optimizer | None = None,
 ) -> None:
     """Write a checkpoint atomically (the torch RNG state is taken now), with the ``run_id`` of
-    its run."""
+    its run (and PBR's discriminator and its optimizer when given)."""
     obj = {
         "format": CHECKPOINT_FORMAT,
         "version": CHECKPOINT_VERSION,
@@ -354,6 +364,10 @@ def save_checkpoint(
         obj["sbm_threshold"] = float(sbm_threshold)
     if run_id is not None:
         obj["run_id"] = str(run_id)
+    if discriminator is not None:
+        obj["discriminator_config"] = discriminator.config()
+        obj["discriminator"] = _state_dict_cpu(discriminator)
+        obj["discriminator_optimizer"] = discriminator_optimizer.state_dict()
     save_torch(obj, path)
 
 
@@ -420,13 +434,14 @@ def load_checkpoint(path: str | os.PathLike, *, input_mode: str | None = None) -
             raise FormatError(f"{path}: self-supervised checkpoint without its pose network")
         pc = check_pose_config(raw["pose_config"], path)
         check_weights(raw["pose_model"], lambda: build_pose_net(pc), path, "pose-network")
+    dc = check_discriminator(raw, path) if kind == "self-supervised" else None
     if "config" not in raw:
         raise FormatError(f"{path}: incomplete checkpoint (no training configuration)")
     try:
         config = TrainConfig.from_dict(raw["config"])
     except ParameterError as exc:
         raise FormatError(f"{path}: bad training configuration ({exc})") from exc
-    check_agreement(config, mc, pc, kind, path)
+    check_agreement(config, mc, pc, kind, path, discriminator=dc)
     try:
         state = TrainingState.from_dict(raw)
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
@@ -448,6 +463,9 @@ def load_checkpoint(path: str | os.PathLike, *, input_mode: str | None = None) -
         pose_model=raw.get("pose_model"),
         sbm_threshold=raw.get("sbm_threshold"),
         run_id=run_id,
+        discriminator_config=dc,
+        discriminator=raw.get("discriminator") if dc is not None else None,
+        discriminator_optimizer=raw.get("discriminator_optimizer") if dc is not None else None,
     )
 
 
@@ -461,10 +479,13 @@ def load_weights(module: torch.nn.Module, weights: dict, path: Path, what: str) 
         raise FormatError(f"{path}: {what} weights do not fit the model ({detail})") from exc
 
 
-def restore_optimizer(optimizer: torch.optim.Optimizer, ckpt: Checkpoint) -> None:
-    """Load a checkpoint's optimizer state; a mismatch is a one-line :class:`FormatError`."""
+def restore_optimizer(
+    optimizer: torch.optim.Optimizer, ckpt: Checkpoint, *, state: dict | None = None
+) -> None:
+    """Load a checkpoint's optimizer state (``state``: another of its optimizers' state, PBR's
+    discriminator's); a mismatch is a one-line :class:`FormatError`."""
     try:
-        optimizer.load_state_dict(ckpt.optimizer)
+        optimizer.load_state_dict(ckpt.optimizer if state is None else state)
     except (ValueError, KeyError, TypeError, RuntimeError) as exc:
         detail = " ".join(str(exc).split())[:200]
         raise FormatError(

@@ -6,7 +6,8 @@ what is wrong); the model configuration has the right types and a bounded size
 (:data:`~sparsetools.train.config.MAX_WIDTH`); the weights have the names and shapes of the
 network that configuration builds (built on torch's ``meta`` device: no memory); the training
 configuration agrees with the networks (``--resume`` rebuilds them from it); the optimizer, RNG
-and SBM entries have the structure training restores. Each failure is one
+and SBM entries have the structure training restores; PBR's discriminator (when present) has a
+known configuration, fitting weights and an optimizer state. Each failure is one
 :class:`~sparsetools.errors.FormatError` naming the file.
 """
 
@@ -27,6 +28,7 @@ from .model import INPUT_CHANNELS, LIDAR_ENCODERS, LIDAR_SCALES, OUTPUTS, check_
 __all__ = [
     "CHECKPOINT_FORMAT",
     "check_agreement",
+    "check_discriminator",
     "check_extras",
     "check_model_config",
     "check_pose_config",
@@ -162,7 +164,40 @@ def check_weights(weights, build: Callable, path: Path, what: str) -> dict:
     return weights
 
 
-def check_agreement(config: TrainConfig, mc: dict, pc: dict | None, kind: str, path: Path) -> None:
+def check_discriminator(raw: dict, path: Path) -> dict | None:
+    """PBR's discriminator entries of a self-supervised checkpoint, checked: its configuration
+    (None when the checkpoint has none: a run without PBR)."""
+    from .selfsup.pbr import DISCRIMINATOR_WIDTH, GRID, build_discriminator
+
+    if raw.get("discriminator_config") is None and raw.get("discriminator") is None:
+        return None
+    dc = raw.get("discriminator_config")
+    if not (
+        isinstance(dc, dict)
+        and isinstance(dc.get("coordinates"), bool)
+        and dc.get("width") == DISCRIMINATOR_WIDTH
+        and dc.get("grid") == GRID
+    ):
+        raise FormatError(
+            f"{path}: discriminator_config must say coordinates (true or false), width "
+            f"{DISCRIMINATOR_WIDTH} and grid {GRID}"
+        )
+    check_weights(raw.get("discriminator"), lambda: build_discriminator(dc), path, "discriminator")
+    if not isinstance(raw.get("discriminator_optimizer"), dict):
+        raise FormatError(f"{path}: no optimizer state of the PBR discriminator")
+    _check_optimizer(raw["discriminator_optimizer"], path, "the discriminator's optimizer")
+    return dict(dc)
+
+
+def check_agreement(
+    config: TrainConfig,
+    mc: dict,
+    pc: dict | None,
+    kind: str,
+    path: Path,
+    *,
+    discriminator: dict | None = None,
+) -> None:
     """The training configuration must describe the networks stored beside it (``--resume``
     rebuilds them from it)."""
     pairs = [
@@ -187,6 +222,17 @@ def check_agreement(config: TrainConfig, mc: dict, pc: dict | None, kind: str, p
                 pc.get("lidar_encoder", "none"),
             )
         )
+    if config.selfsup is not None:
+        pbr = config.selfsup.pbr is not None
+        if pbr != (discriminator is not None):
+            raise FormatError(
+                f"{path}: its training configuration {'has' if pbr else 'has no'} --pbr, but "
+                f"the checkpoint {'lacks' if pbr else 'holds'} a PBR discriminator"
+            )
+        if pbr:
+            pairs.append(
+                ("pbr_coordinates", config.selfsup.pbr_coordinates, discriminator["coordinates"])
+            )
     for name, theirs, mine in pairs:
         if theirs != mine:
             raise FormatError(
@@ -194,9 +240,7 @@ def check_agreement(config: TrainConfig, mc: dict, pc: dict | None, kind: str, p
             )
 
 
-def check_extras(raw: dict, path: Path) -> None:
-    """Optimizer, RNG and SBM entries of the structure training restores."""
-    opt = raw.get("optimizer")
+def _check_optimizer(opt, path: Path, what: str) -> None:
     if opt is not None and not (
         isinstance(opt, dict)
         and isinstance(opt.get("state", {}), dict)
@@ -206,7 +250,12 @@ def check_extras(raw: dict, path: Path) -> None:
             for g in opt.get("param_groups", [])
         )
     ):
-        raise FormatError(f"{path}: the optimizer state is not torch's optimizer state dict")
+        raise FormatError(f"{path}: {what} state is not torch's optimizer state dict")
+
+
+def check_extras(raw: dict, path: Path) -> None:
+    """Optimizer, RNG and SBM entries of the structure training restores."""
+    _check_optimizer(raw.get("optimizer"), path, "the optimizer")
     rng = raw.get("rng")
     state = rng.get("torch") if isinstance(rng, dict) else None
     reference = torch.get_rng_state()

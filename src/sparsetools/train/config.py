@@ -99,6 +99,7 @@ def _is_pair(check):
 #: this module is imported (:func:`_field_kinds`): a new field cannot go unchecked.
 _KINDS = {
     str: (lambda v: isinstance(v, str), "a string"),
+    str | None: (lambda v: v is None or isinstance(v, str), "a string or null"),
     int: (_is_int, "an integer"),
     int | None: (lambda v: v is None or _is_int(v), "an integer or null"),
     float: (_is_real, "a number"),
@@ -215,6 +216,11 @@ class SelfSupSettings:
         ``best.pt`` by the validation photometric loss (default; reads no ground truth) or by
         the validation RMSE against ground truth (needs it in every validation frame).
         Configurations written before 0.4 lack the key and keep ``'gt'``.
+    pbr, pbr_coordinates, pbr_weight, pbr_discriminator_weight
+        RNW's priors-based regularization (:mod:`sparsetools.train.selfsup.pbr`): the folder
+        of a dataset whose ground truth (or dense depth) are unpaired reference depths (None:
+        off); the coordinate image I_p in the discriminator's input; xi, weight of L_G in the
+        depth network's loss; tau, weight of L_D in the discriminator's own loss.
     """
 
     sparse_loss: str = "none"
@@ -236,6 +242,10 @@ class SelfSupSettings:
     lidar_dropout: float = 0.0
     lidar_holdout: float = 0.0
     select_by: str = "photometric"
+    pbr: str | None = None
+    pbr_coordinates: bool = True
+    pbr_weight: float = 0.01
+    pbr_discriminator_weight: float = 1.0
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -331,6 +341,29 @@ class SelfSupSettings:
             raise ParameterError(
                 f"unknown model selection {self.select_by!r}; choose one of {', '.join(SELECT_BY)}",
                 param="select_by",
+            )
+        self._validate_pbr()
+
+    def _validate_pbr(self) -> None:
+        xi, tau = float(self.pbr_weight), float(self.pbr_discriminator_weight)
+        for name, v, bound in (
+            ("pbr_weight", xi, ">= 0"),
+            ("pbr_discriminator_weight", tau, "> 0"),
+        ):
+            if not (math.isfinite(v) and (v >= 0 if bound == ">= 0" else v > 0)):
+                raise ParameterError(f"{name} must be a finite number {bound}, got {v}", param=name)
+        if self.pbr is not None and not self.pbr.strip():
+            raise ParameterError("the PBR reference must be a dataset folder", param="pbr")
+        off = SelfSupSettings()
+        if self.pbr is None and (self.pbr_coordinates, xi, tau) != (
+            off.pbr_coordinates,
+            off.pbr_weight,
+            off.pbr_discriminator_weight,
+        ):
+            raise ParameterError(
+                "--pbr REFERENCE is missing: --pbr-weight, --pbr-discriminator-weight and "
+                "--no-pbr-coordinates are settings of the priors-based regularization",
+                param="pbr",
             )
 
     @property

@@ -114,6 +114,13 @@ class TrainingTask(Protocol):
         The metrics-row column ``best.pt`` is chosen by (lower is better).
     progress_terms : dict of str to str
         Progress-bar label -> loss term shown (its epoch mean).
+
+    Notes
+    -----
+    A task may also have ``after_step(state) -> dict``: called after every optimizer step
+    (before the step is counted), for a network with an optimizer of its own (the PBR
+    discriminator of :class:`~sparsetools.train.selfsup.task.SelfSupervisedTask`); the terms it
+    returns join the step's. A task without it trains as before the hook existed.
     """
 
     train_set: Any
@@ -320,6 +327,7 @@ def _train_epoch(task, networks, optimizer, loader, config, state, *, progress: 
     for net in networks:
         net.train()
     batches_per_epoch = math.ceil(len(task.train_set) / config.batch_size)
+    after_step = getattr(task, "after_step", None)
     t0 = time.perf_counter()
     with progress_bar(batches_per_epoch, f"epoch {epoch + 1}/{config.epochs}", progress) as bar:
         bar.update(state.batch_in_epoch)
@@ -334,7 +342,8 @@ def _train_epoch(task, networks, optimizer, loader, config, state, *, progress: 
             optimizer.zero_grad(set_to_none=True)
             result.loss.backward()
             optimizer.step()
-            state.add_batch(result.terms, result.samples)
+            terms = result.terms if after_step is None else {**result.terms, **after_step(state)}
+            state.add_batch(terms, result.samples)
             elapsed = state.epoch_seconds + time.perf_counter() - t0
             shown = {k: f"{state.epoch_mean(t):.4g}" for k, t in task.progress_terms.items()}
             bar.set_postfix(**shown, img_s=f"{state.epoch_samples / max(elapsed, 1e-9):.1f}")

@@ -8,6 +8,8 @@ options; METHODS.md section 8).
 - :mod:`.pose_net`: the pose network (two frames -> axis-angle + translation);
 - :mod:`.data`: frame triplets (t-1, t, t+1) of a dataset's sequences;
 - :mod:`.losses`: the loss of a batch (minimum reprojection, masks, smoothness, sparse loss);
+- :mod:`.pbr`: RNW's priors-based regularization (PatchGAN discriminator, LSGAN losses) and
+  :mod:`.pbr_reference`: its unpaired reference depths;
 - :mod:`.task`: training (the task :func:`sparsetools.train.epochs.fit` drives, and its
   validation); :mod:`.pose_eval`: ATE over 5-frame snippets.
 

@@ -27,6 +27,12 @@ against the shortcut of a LiDAR branch that learns to copy its input into the sp
 ``lidar_dropout`` (an empty input map on a fraction of training batches) and
 ``lidar_holdout`` (disjoint point sets for the input and the loss), both drawn from
 ``(seed, step)`` (:func:`split_lidar`); validation feeds every point.
+
+With ``selfsup.pbr`` (RNW's priors-based regularization, :mod:`.pbr`), the depth network's
+loss gains ``xi * L_G`` of a PatchGAN discriminator that is trained after every step on its own
+optimizer (:meth:`SelfSupervisedTask.after_step`); its weights (from a stream of their own) and
+optimizer are saved in the checkpoints, its losses logged as ``train_pbr_*``. Validation
+losses leave the adversarial term out. Without ``pbr`` nothing of it runs.
 """
 
 from __future__ import annotations
@@ -39,8 +45,8 @@ import torch
 
 from ...errors import ParameterError
 from ...ops.metrics import METRIC_NAMES, aggregate_metrics
-from ..checkpoint import Checkpoint, TrainingState, load_weights
-from ..config import TrainConfig
+from ..checkpoint import Checkpoint, TrainingState, load_weights, restore_optimizer
+from ..config import TrainConfig, epoch_lr
 from ..epochs import StepResult, Validation, single_size
 from ..evaluate import (
     EvaluationPass,
@@ -54,6 +60,8 @@ from ..runtime import batches, progress_bar
 from .data import TripletDataset
 from .losses import selfsup_loss
 from .masks import StatisticsMask
+from .pbr import PriorsRegularizer
+from .pbr_reference import ReferenceDepths
 from .pose_eval import evaluate_pose
 from .pose_net import POSE_SCALE, PoseNet, metric_translation_scale, source_transforms
 
@@ -269,9 +277,20 @@ class SelfSupervisedTask:
             if settings.sbm
             else None
         )
+        self.reference = None
+        if settings.pbr is not None:  # checked now, before a run folder is made
+            self.reference = ReferenceDepths(
+                settings.pbr,
+                split=config.train_split,
+                size=single_size(config, self.train_set),
+                max_depth=config.max_depth,
+                seed=config.seed,
+            )
+            self.progress_terms["adv"] = "pbr_generator"
         self.device = torch.device("cpu")
         self.depth_net: DepthCompletionUNet | None = None
         self.pose_net: PoseNet | None = None
+        self.pbr: PriorsRegularizer | None = None
 
     def build_networks(self, device: torch.device) -> list[torch.nn.Module]:
         config, settings = self.config, self.config.selfsup
@@ -291,6 +310,8 @@ class SelfSupervisedTask:
             lidar_encoder=settings.pose_lidar_encoder,
             translation_scale=pose_translation_scale(settings),
         ).to(device)
+        if self.reference is not None:  # not in the list: its optimizer is its own
+            self.pbr = PriorsRegularizer(config, reference=self.reference, device=device)
         return [self.depth_net, self.pose_net]
 
     def restore(self, ckpt: Checkpoint) -> None:
@@ -298,6 +319,9 @@ class SelfSupervisedTask:
         load_weights(self.pose_net, ckpt.pose_model, ckpt.path, "pose-network")
         if self.sbm is not None:
             self.sbm.threshold = ckpt.sbm_threshold
+        if self.pbr is not None:
+            load_weights(self.pbr.discriminator, ckpt.discriminator, ckpt.path, "discriminator")
+            restore_optimizer(self.pbr.optimizer, ckpt, state=ckpt.discriminator_optimizer)
 
     def step(self, batch: dict, state: TrainingState) -> StepResult:
         config, settings = self.config, self.config.selfsup
@@ -322,7 +346,20 @@ class SelfSupervisedTask:
             update_sbm=True,
             generator=noise_generator(config.seed, state.step),
         )
-        return StepResult(terms.total, terms.as_row(), len(batch["index"]))
+        row = terms.as_row()
+        if self.pbr is None:
+            return StepResult(terms.total, row, len(batch["index"]))
+        depth = disparity_to_depth(disparities[0], *settings.depth_range)
+        adversarial = self.pbr.generator_loss(depth, step=state.step)
+        total = terms.total + settings.pbr_weight * adversarial
+        row.update(loss=float(total.detach()), pbr_generator=float(adversarial.detach()))
+        return StepResult(total, row, len(batch["index"]))
+
+    def after_step(self, state: TrainingState) -> dict[str, float]:
+        """The discriminator's step after the networks' (PBR only): its loss terms."""
+        if self.pbr is None:
+            return {}
+        return self.pbr.update_discriminator(lr=epoch_lr(self.config, state.epoch), step=state.step)
 
     def validate(self, state: TrainingState, *, progress: bool) -> Validation:
         config, sbm = self.config, self.sbm
@@ -350,6 +387,7 @@ class SelfSupervisedTask:
             "train_reprojection": state.epoch_mean("reprojection"),
             "train_sparse": state.epoch_mean("sparse"),
             "train_mask_fraction": state.epoch_mean("mask_fraction"),
+            **self._pbr_columns(state),
             "val_loss": val.loss,
             "photometric": val_pe,
             "median_scaling": int(not config.selfsup.metric_scale),
@@ -362,9 +400,19 @@ class SelfSupervisedTask:
         }
         return Validation(columns, val.pictures)
 
+    def _pbr_columns(self, state: TrainingState) -> dict[str, float]:
+        if self.pbr is None:  # the metrics rows of runs without PBR are as before it
+            return {}
+        names = ("pbr_generator", "pbr_discriminator", "pbr_real", "pbr_fake")
+        return {f"train_{n}": state.epoch_mean(n) for n in names}
+
     def checkpoint_extras(self) -> dict:
         threshold = None if self.sbm is None else self.sbm.threshold
-        return {"pose_model": self.pose_net, "sbm_threshold": threshold}
+        extras = {"pose_model": self.pose_net, "sbm_threshold": threshold}
+        if self.pbr is not None:
+            extras["discriminator"] = self.pbr.discriminator
+            extras["discriminator_optimizer"] = self.pbr.optimizer
+        return extras
 
     def describe(self, row: dict) -> str:
         text = (
@@ -373,6 +421,11 @@ class SelfSupervisedTask:
         )
         if math.isfinite(row.get("ate", math.nan)):
             text += f", ATE {row['ate']:.3g} m (standing still {row['ate_still']:.3g} m)"
+        if "train_pbr_discriminator" in row:
+            text += (
+                f", PBR L_G {row['train_pbr_generator']:.3g} "
+                f"L_D {row['train_pbr_discriminator']:.3g}"
+            )
         return text
 
     def finish(self, state: TrainingState) -> dict:
