@@ -39,10 +39,11 @@ def _cli() -> list[str]:
 
 def case(name: str, clouds: Path, calib: Path, size: str, n: int, tmp: Path) -> dict:
     runs = iter(range(10**6))
+    tag = f"case{len(list(tmp.glob('case*-out0')))}"
 
     def run(*options: str):
         def go():
-            out = tmp / f"out{next(runs)}"
+            out = tmp / f"{tag}-out{next(runs)}"
             cmd = [*_cli(), "-q", "project", str(clouds), "--calib", str(calib), "--image-size",
                    size, "-o", str(out), "--json", *options]  # fmt: skip
             res = subprocess.run(cmd, capture_output=True, text=True, check=True, env=cli_env())
