@@ -193,8 +193,8 @@ def main(argv=None) -> dict:
             depth_to_points,
             read_manifest,
             write_manifest,
-            write_sparse_part,
         )
+        from sparsetools.io.dataset_parts import write_sparse_part
         from sparsetools.io.points_table import sparse_part_table
 
         ids, points = [], []
