@@ -182,7 +182,9 @@ def compact_journal(
             np.concatenate([old_o[keep], np.frombuffer(new_o, dtype=np.int64)]),
         )
         del hashes
-        # the old lines are in the file as it was: ``index`` read it, and this run only appended
+        # the old lines are in the file as it was: ``index`` read it, and this run only appended.
+        # Every offset kept is a line the scan found valid: it is copied as it is (one parse
+        # per line, for its key; the last line of a file may lack its newline)
         keys = []
         for off in offsets.tolist():
             fh.seek(off)
@@ -194,10 +196,11 @@ def compact_journal(
             with contextlib.suppress(FileNotFoundError):
                 path.unlink()
             return
-        with atomic_path(path) as tmp, open(tmp, "w", encoding="utf-8") as dst:
+        with atomic_path(path) as tmp, open(tmp, "wb") as dst:
             for i in order:
                 fh.seek(int(offsets[i]))
-                dst.write(_parse(fh.readline(MAX_FRAME_LINE_BYTES + 1)).to_line() + "\n")
+                line = fh.readline(MAX_FRAME_LINE_BYTES + 1)
+                dst.write(line if line.endswith(b"\n") else line + b"\n")
 
 
 def _parse(line: bytes) -> FrameRecord | None:
