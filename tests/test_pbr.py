@@ -20,7 +20,7 @@ from sparsetools.errors import FormatError, ParameterError
 from sparsetools.train.checkpoint import load_checkpoint
 from sparsetools.train.config import SelfSupSettings, TrainConfig
 from sparsetools.train.loop import train
-from sparsetools.train.selfsup.pbr import (
+from sparsetools.train.selfsup.discriminator import (
     GRID,
     LAYERS,
     OUTPUT_SIZE,

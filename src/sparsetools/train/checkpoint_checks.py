@@ -167,7 +167,7 @@ def check_weights(weights, build: Callable, path: Path, what: str) -> dict:
 def check_discriminator(raw: dict, path: Path) -> dict | None:
     """PBR's discriminator entries of a self-supervised checkpoint, checked: its configuration
     (None when the checkpoint has none: a run without PBR)."""
-    from .selfsup.pbr import DISCRIMINATOR_WIDTH, GRID, build_discriminator
+    from .selfsup.discriminator import DISCRIMINATOR_WIDTH, GRID, build_discriminator
 
     if raw.get("discriminator_config") is None and raw.get("discriminator") is None:
         return None
