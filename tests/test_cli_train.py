@@ -157,7 +157,7 @@ def test_usage_errors(dataset, tmp_path):
 def test_help_lists_examples():
     r = run("train", "--help")
     assert r.exit_code == 0 and "--final-layer / --no-final-layer" in r.output
-    assert "[rgb|rgbd|rgbdm|d|rgbdc]" in r.output and "-q, --quiet" in r.output
+    assert "[rgb|rgbd|rgbdm|d|rgbdc|rgbdu]" in r.output and "-q, --quiet" in r.output
     r = run("eval", "--help")
     assert r.exit_code == 0 and "--garg-crop" in r.output
     assert "--overwrite" in r.output and "--debug" in r.output

@@ -282,7 +282,7 @@ def test_densify_learned_writes_depth_mask_and_uncertainty_and_resumes(
     checkpoint, sparse_maps, tmp_path
 ):
     out = tmp_path / "dense"
-    args = ["densify", sparse_maps, "-o", out, "--method", "learned", "--model", checkpoint,
+    args = ["densify", sparse_maps, "-o", out, "--method", "learned", "--densifier", checkpoint,
             "--uncertainty", "--json"]  # fmt: skip
     r = run(*args)
     assert r.exit_code == 0, r.output
@@ -316,17 +316,17 @@ def test_densify_learned_writes_depth_mask_and_uncertainty_and_resumes(
 def test_densify_learned_refuses_missing_and_foreign_checkpoints(sparse_maps, tmp_path):
     out = tmp_path / "dense"
     missing = one_line_error(run("densify", sparse_maps, "-o", out, "--method", "learned",
-                                 "--model", tmp_path / "nope.pt"))  # fmt: skip
+                                 "--densifier", tmp_path / "nope.pt"))  # fmt: skip
     assert "no such densifier checkpoint" in missing
     junk = tmp_path / "junk.pt"
     junk.write_bytes(b"not a checkpoint at all")
     line = one_line_error(run("densify", sparse_maps, "-o", out, "--method", "learned",
-                              "--model", junk))  # fmt: skip
+                              "--densifier", junk))  # fmt: skip
     assert "not a readable torch checkpoint" in line
     depth_ckpt = tmp_path / "depth.pt"
     torch.save({"format": "sparsetools-depth-checkpoint", "version": 2}, depth_ckpt)
     line = one_line_error(run("densify", sparse_maps, "-o", out, "--method", "learned",
-                              "--model", depth_ckpt))  # fmt: skip
+                              "--densifier", depth_ckpt))  # fmt: skip
     assert "not a sparsetools densifier checkpoint" in line
     with pytest.raises(FormatError, match="weights"):
         bad = tmp_path / "bad.pt"
@@ -338,10 +338,10 @@ def test_densify_learned_refuses_missing_and_foreign_checkpoints(sparse_maps, tm
 
 def test_densify_options_of_other_methods_are_refused(checkpoint, sparse_maps, tmp_path):
     r = run("densify", sparse_maps, "-o", tmp_path / "a", "--method", "learned")
-    assert r.exit_code == 2 and "--model" in r.stderr
+    assert r.exit_code == 2 and "--densifier" in r.stderr
     r = run("densify", sparse_maps, "-o", tmp_path / "b", "--uncertainty")
     assert r.exit_code == 2 and "--method learned" in r.stderr
-    r = run("densify", sparse_maps, "-o", tmp_path / "c", "--method", "learned", "--model",
+    r = run("densify", sparse_maps, "-o", tmp_path / "c", "--method", "learned", "--densifier",
             checkpoint, "--multiscale")  # fmt: skip
     assert r.exit_code == 2 and "--multiscale" in r.stderr
 
@@ -374,7 +374,7 @@ def test_without_torch_the_commands_say_one_line(tmp_path):
     r = without_torch("train-densifier", "-o", tmp_path / "run")
     assert (r.returncode, r.stderr) == (1, f"Error: train-densifier needs PyTorch: {hint}\n")
     r = without_torch("densify", SYNTH / "depth_gt", "-o", tmp_path / "d", "--method", "learned",
-                      "--model", tmp_path / "x.pt")  # fmt: skip
+                      "--densifier", tmp_path / "x.pt")  # fmt: skip
     assert r.returncode == 1
     assert r.stderr == f"Error: densify --method learned needs PyTorch: {hint}\n"
     assert not (tmp_path / "run").exists() and not (tmp_path / "d").exists()

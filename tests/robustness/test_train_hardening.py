@@ -346,7 +346,7 @@ def test_train_and_eval_checkpoint_without_torch_name_the_extra(dataset, tmp_pat
     r = without_torch("eval", "--checkpoint", tmp_path, dataset)
     assert (r.returncode, r.stderr) == (1, f"Error: eval --checkpoint needs PyTorch: {hint}\n")
     r = without_torch("train", "--help")
-    assert r.returncode == 0 and "--input [rgb|rgbd|rgbdm|d|rgbdc]" in r.stdout
+    assert r.returncode == 0 and "--input [rgb|rgbd|rgbdm|d|rgbdc|rgbdu]" in r.stdout
 
 
 def test_eval_of_depth_files_needs_no_torch_and_gives_the_same_numbers(tmp_path):

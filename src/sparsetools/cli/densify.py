@@ -8,6 +8,7 @@ import click
 
 from .options import (
     batch_options,
+    densifier_option,
     deprecated,
     emit_summary,
     format_option,
@@ -30,7 +31,7 @@ from .options import (
     ["ip-basic", "nearest", "linear", "learned"],
     default="ip-basic",
     help="IP-Basic (Ku et al. 2018), nearest measurement, linear on the Delaunay triangles, "
-    "or the learned densifier of train-densifier (with --model; SpaDe-style, with "
+    "or the learned densifier of train-densifier (with --densifier; SpaDe-style, with "
     "uncertainty).",
 )
 @click.option(
@@ -67,12 +68,9 @@ from .options import (
     show_default=True,
     help="Linear fill outside the convex hull of the measurements: nearest one, or 0.",
 )
-@click.option(
-    "--model",
-    type=click.Path(path_type=Path),
-    metavar="CHECKPOINT",
+@densifier_option(
     help="--method learned: the densifier checkpoint (densifier.pt of train-densifier, or its "
-    "run folder).",
+    "run folder)."
 )
 @click.option(
     "--uncertainty",
@@ -88,7 +86,7 @@ from .options import (
 @deprecated("--max-depth", "--inversion-offset", command="densify", dest="inversion_offset")
 @batch_options
 def densify(sparse, out_dir, method, variant, extrapolate, multiscale, inversion_offset, outside,
-            model, uncertainty, fmt, batch, as_json):  # fmt: skip
+            densifier, uncertainty, fmt, batch, as_json):  # fmt: skip
     """Complete sparse depth maps: IP-Basic (as published), the nearest / linear baselines, or
     the learned densifier.
 
@@ -99,7 +97,7 @@ def densify(sparse, out_dir, method, variant, extrapolate, multiscale, inversion
     measured in the input, 0 = filled in or no estimate). A rerun skips frames that are up
     to date, recomputes those whose input changed and refuses other settings.
 
-    --method learned --model CHECKPOINT runs a densifier trained by `train-densifier` (one
+    --method learned --densifier CHECKPOINT runs a densifier trained by `train-densifier` (one
     torch thread per worker; every pixel gets a depth) and with --uncertainty writes its
     log-variance map U beside the depth (docs/densify.md: how far to trust each pixel).
 
@@ -112,14 +110,14 @@ def densify(sparse, out_dir, method, variant, extrapolate, multiscale, inversion
       sparsetools densify out/radar -o out/radar_nearest --method nearest
       sparsetools train-densifier -o out/densifier --threads 1
       sparsetools densify out/depth -o out/dense_learned --method learned \\
-          --model out/densifier/densifier.pt --uncertainty
+          --densifier out/densifier/densifier.pt --uncertainty
     """
     from ..io.sources import depth_frames
     from ..ops.densify import DensifySettings
     from ..pipeline import run_job
     from ..pipeline.densify import DensifyJob, LearnedSettings
 
-    learned, densifier = _learned_method(method, model, uncertainty)
+    learned, model = _learned_method(method, densifier, uncertainty)
     settings = DensifySettings(
         method="ip-basic" if learned else method,
         variant=variant,
@@ -129,8 +127,8 @@ def densify(sparse, out_dir, method, variant, extrapolate, multiscale, inversion
         outside=outside,
     )
     if learned:
-        learned = LearnedSettings(str(densifier.path.resolve()), uncertainty)
-    job = DensifyJob(settings, fmt, learned=learned or None, model=densifier)
+        learned = LearnedSettings(str(model.path.resolve()), uncertainty)
+    job = DensifyJob(settings, fmt, learned=learned or None, model=model)
     summary = run_job(job, depth_frames(sparse), out_dir, batch=batch, inputs=sparse)
     emit_summary(summary, as_json=as_json, title=f"dense depth maps in {out_dir}")
 
@@ -139,7 +137,7 @@ def densify(sparse, out_dir, method, variant, extrapolate, multiscale, inversion
 _CLASSICAL = ("variant", "extrapolate", "multiscale", "inversion_offset", "outside")
 
 
-def _learned_method(method, model, uncertainty):
+def _learned_method(method, densifier, uncertainty):
     """(True, the loaded model) for --method learned, else (False, None); options that do not
     go with the method are usage errors."""
     from click.core import ParameterSource
@@ -150,12 +148,12 @@ def _learned_method(method, model, uncertainty):
         return ctx.get_parameter_source(name) not in (None, ParameterSource.DEFAULT)
 
     if method != "learned":
-        for name in ("model", "uncertainty"):
+        for name in ("densifier", "uncertainty"):
             if given(name):
                 raise click.UsageError(f"--{name} belongs to --method learned")
         return False, None
-    if model is None:
-        raise click.UsageError("--method learned needs --model CHECKPOINT (train-densifier "
+    if densifier is None:
+        raise click.UsageError("--method learned needs --densifier CHECKPOINT (train-densifier "
                                "writes one)")  # fmt: skip
     for name in _CLASSICAL:
         if given(name):
@@ -167,4 +165,4 @@ def _learned_method(method, model, uncertainty):
     require_torch("densify --method learned")
     from ..train.densifier import LearnedDensifier
 
-    return True, LearnedDensifier(model, threads=1)
+    return True, LearnedDensifier(densifier, threads=1)

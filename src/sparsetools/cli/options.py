@@ -37,6 +37,7 @@ __all__ = [
     "calib_option",
     "checked",
     "crop_box",
+    "densifier_option",
     "deprecated",
     "emit_summary",
     "image_option",
@@ -261,6 +262,16 @@ def lr_option(f=None, *, default: float = 1e-3, help: str = "Learning rate."):
             "--lr", type=click.FloatRange(min=0, min_open=True), default=default,
             show_default=True, help=help,
         )(fn)  # fmt: skip
+
+    return deco(f) if f is not None else deco
+
+
+def densifier_option(f=None, *, help: str):
+    """``--densifier``: a learned densifier checkpoint (``densifier.pt`` of ``train-densifier``,
+    or its run folder)."""
+
+    def deco(fn):
+        return click.option("--densifier", metavar="CHECKPOINT", default=None, help=help)(fn)
 
     return deco(f) if f is not None else deco
 

@@ -9,6 +9,7 @@ import click
 
 from .options import (
     batch_size_option,
+    densifier_option,
     deprecated,
     device_option,
     emit_summary,
@@ -27,7 +28,7 @@ from .options import (
 )
 
 #: ``--input`` choices (the channels of each: docs/train.md).
-INPUT_MODES = ("rgb", "rgbd", "rgbdm", "d", "rgbdc")
+INPUT_MODES = ("rgb", "rgbd", "rgbdm", "d", "rgbdc", "rgbdu")
 
 
 def progress_wanted() -> bool:
@@ -70,6 +71,10 @@ _FIELDS = {
     "threads": "threads",
     "lidar_encoder": "lidar_encoder",
     "lidar_scales": "lidar_scales",
+    "url": "url",
+    "densifier": "densifier",
+    "gate_alpha": "gate_alpha",
+    "gate_beta": "gate_beta",
 }
 
 # CLI parameter -> the parameter of its deprecated spelling (hidden, kept for one release)
@@ -300,7 +305,33 @@ def selfsup_options(f):
     show_default=True,
     help="Network input: rgb = camera only; rgbd = + sparse depth; rgbdm = + its validity "
     "mask; d = sparse depth alone (radar-only baseline); rgbdc = rgb + sparse depth + the "
-    "confidence map of `dataset build --confidence` (JBF).",
+    "confidence map of `dataset build --confidence` (JBF); rgbdu = rgb + the learned "
+    "densifier's dense depth D_c and log-variance U (URL: --url, --densifier).",
+)
+@click.option(
+    "--url",
+    type=click.Choice(["residual", "gated"]),
+    default=None,
+    help="--input rgbdu: URL's refinement of D_c, residual D_c + R(I, U) or gated "
+    "lambda(U) D_c + (1 - lambda(U)) P [default with --input rgbdu: residual] (docs/train.md).",
+)
+@densifier_option(
+    help="--input rgbdu: the learned densifier that gives D_c and U (densifier.pt of "
+    "train-densifier, or its run folder); its weights are kept in the run's checkpoints."
+)
+@click.option(
+    "--gate-alpha",
+    type=click.FloatRange(min=0, min_open=True),
+    default=0.8,
+    show_default=True,
+    help="--url gated: alpha of the gate lambda(U) = 1 / (1 + exp(alpha (U - beta))).",
+)
+@click.option(
+    "--gate-beta",
+    type=float,
+    default=0.0,
+    show_default=True,
+    help="--url gated: beta of the gate (U, log m^2, where it weighs D_c and P equally).",
 )
 @click.option(
     "--loss",
@@ -444,6 +475,7 @@ def train(ctx, dataset, out_dir, resume, as_json, self_supervised, **options):
       sparsetools train out/ds -o out/run_sfe_sup --lidar-encoder sfe --width 16
       sparsetools train out/nus -o out/run_radar --input d
       sparsetools train out/nus_jbf -o out/run_jbf --input rgbdc
+      sparsetools train out/ds -o out/url --input rgbdu --url gated --densifier out/densifier
       sparsetools eval --checkpoint out/run_rgbd/best.pt out/ds --split test
     """
     from click.core import ParameterSource
@@ -476,6 +508,8 @@ def train(ctx, dataset, out_dir, resume, as_json, self_supervised, **options):
         options["crop_size"] = (height, width)
     if options["lidar_encoder"] != "none" and not given("input_mode"):
         options["input_mode"] = "rgb"  # EffisDepth: the sparse depth goes to its own branch
+    if options["input_mode"] == "rgbdu" and options["url"] is None:
+        options["url"] = "residual"  # the survey's D_f = D_c + R(I, U)
     explicit = {_FIELDS[name] for name in _FIELDS if given(name)}
     explicit |= {f"selfsup.{_SELFSUP_FIELDS[name]}" for name in set_selfsup}
     if given("self_supervised"):

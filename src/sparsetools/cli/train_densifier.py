@@ -110,14 +110,14 @@ def train_densifier(scenes, out_dir, sim_frames, image_size, beam_counts, steps,
     memory. Each sample is a random window of a frame, its scan thinned to one of
     --beam-counts and projected; the loss is L1 + --nll-weight x the Gaussian
     heteroscedastic term (docs/densify.md). Writes OUT/densifier.pt, OUT/metrics.csv and
-    OUT/config.json; use the checkpoint with `densify --method learned --model`. The same
+    OUT/config.json; use the checkpoint with `densify --method learned --densifier`. The same
     seed and --threads give the same weights on CPU.
 
     \b
     Examples:
       sparsetools train-densifier -o out/densifier --threads 1        # about a minute
       sparsetools densify out/depth -o out/dense_learned --method learned \\
-          --model out/densifier/densifier.pt --uncertainty
+          --densifier out/densifier/densifier.pt --uncertainty
       sparsetools synth-scene -o out/street --frames 40 --underwater-frames 0
       sparsetools train-densifier out/street -o out/densifier_40 --steps 2000
     """

@@ -85,7 +85,7 @@ class LearnedSettings:
         Also write the log-variance maps.
     """
 
-    checkpoint: str = field(default="", metadata={"option": "--model"})
+    checkpoint: str = field(default="", metadata={"option": "--densifier"})
     uncertainty: bool = field(default=False, metadata={"option": "--uncertainty"})
 
 
@@ -141,8 +141,8 @@ class DensifyJob(BatchJob[DensifyInput]):
     def __post_init__(self) -> None:
         check_choice(self.fmt, "--format", FORMATS)
         if self.learned is not None and self.model is None:
-            raise ParameterError("--method learned needs its model (--model CHECKPOINT)",
-                                 param="--model")  # fmt: skip
+            raise ParameterError("--method learned needs its model (--densifier CHECKPOINT)",
+                                 param="--densifier")  # fmt: skip
 
     @property
     def method(self) -> str:
@@ -180,7 +180,7 @@ class DensifyJob(BatchJob[DensifyInput]):
         return {**settings_dict(self.settings), "fmt": self.fmt}
 
     def option_names(self) -> dict:
-        return {"fmt": "--format", "max_depth": "--inversion-offset", "checkpoint": "--model",
+        return {"fmt": "--format", "max_depth": "--inversion-offset", "checkpoint": "--densifier",
                 "uncertainty": "--uncertainty"}  # fmt: skip
 
     def _learned(self, task: FrameTask[DensifyInput], sparse: np.ndarray):

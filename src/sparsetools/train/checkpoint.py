@@ -13,7 +13,7 @@ A checkpoint file is a plain dict of tensors, numbers and strings (``torch.load(
 weights_only=True)`` reads it): format tag and version, kind (``supervised`` or
 ``self-supervised``), the configuration, the depth model's constructor arguments and weights,
 for self-supervised runs the pose network and the SBM threshold (with PBR the discriminator,
-its configuration and its optimizer), the optimizer state, the position in training
+its configuration and its optimizer), for URL runs the learned densifier, the optimizer state, the position in training
 (:class:`TrainingState`) and the torch RNG state. :func:`load_checkpoint` checks it and returns
 a typed :class:`Checkpoint`.
 
@@ -248,6 +248,9 @@ class Checkpoint:
         weights and its optimizer's state.
     run_id : str or None
         The run the checkpoint belongs to (None: written by sparsetools 0.2.0, before run ids).
+    densifier : dict or None
+        The learned densifier of a URL run (``input_mode='rgbdu'``): ``model_config``,
+        ``model`` and ``run_id`` (:func:`sparsetools.train.url.densifier_record`).
     """
 
     path: Path
@@ -265,6 +268,7 @@ class Checkpoint:
     discriminator_config: dict | None = None
     discriminator: dict | None = None
     discriminator_optimizer: dict | None = None
+    densifier: dict | None = None
 
     @property
     def input_mode(self) -> str:
@@ -342,9 +346,10 @@ def save_checkpoint(
     run_id: str | None = None,
     discriminator: torch.nn.Module | None = None,
     discriminator_optimizer: torch.optim.Optimizer | None = None,
+    densifier: dict | None = None,
 ) -> None:
     """Write a checkpoint atomically (the torch RNG state is taken now), with the ``run_id`` of
-    its run (and PBR's discriminator and its optimizer when given)."""
+    its run (and PBR's discriminator and its optimizer, a URL run's densifier, when given)."""
     obj = {
         "format": CHECKPOINT_FORMAT,
         "version": CHECKPOINT_VERSION,
@@ -368,6 +373,8 @@ def save_checkpoint(
         obj["discriminator_config"] = discriminator.config()
         obj["discriminator"] = _state_dict_cpu(discriminator)
         obj["discriminator_optimizer"] = discriminator_optimizer.state_dict()
+    if densifier is not None:
+        obj["densifier"] = densifier
     save_torch(obj, path)
 
 
@@ -442,6 +449,11 @@ def load_checkpoint(path: str | os.PathLike, *, input_mode: str | None = None) -
     except ParameterError as exc:
         raise FormatError(f"{path}: bad training configuration ({exc})") from exc
     check_agreement(config, mc, pc, kind, path, discriminator=dc)
+    densifier = None
+    if mc.get("url") is not None:
+        from .densifier import check_densifier_record
+
+        densifier = check_densifier_record(raw.get("densifier"), path)
     try:
         state = TrainingState.from_dict(raw)
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
@@ -466,6 +478,7 @@ def load_checkpoint(path: str | os.PathLike, *, input_mode: str | None = None) -
         discriminator_config=dc,
         discriminator=raw.get("discriminator") if dc is not None else None,
         discriminator_optimizer=raw.get("discriminator_optimizer") if dc is not None else None,
+        densifier=densifier,
     )
 
 

@@ -7,7 +7,8 @@ what is wrong); the model configuration has the right types and a bounded size
 network that configuration builds (built on torch's ``meta`` device: no memory); the training
 configuration agrees with the networks (``--resume`` rebuilds them from it); the optimizer, RNG
 and SBM entries have the structure training restores; PBR's discriminator (when present) has a
-known configuration, fitting weights and an optimizer state. Each failure is one
+known configuration, fitting weights and an optimizer state; a URL model's reading of its head
+(``url``, the gate) goes with its input mode. Each failure is one
 :class:`~sparsetools.errors.FormatError` naming the file.
 """
 
@@ -24,6 +25,7 @@ import torch
 from ..errors import FormatError, ParameterError
 from .config import MAX_WIDTH, TrainConfig
 from .model import INPUT_CHANNELS, LIDAR_ENCODERS, LIDAR_SCALES, OUTPUTS, check_lidar_scales
+from .url import URL_MODES, URL_VARIANTS
 
 __all__ = [
     "CHECKPOINT_FORMAT",
@@ -120,6 +122,14 @@ def check_model_config(mc, path: Path) -> dict:
         check_lidar_scales(mc.get("lidar_scales", list(LIDAR_SCALES)))
     except ParameterError as exc:
         raise FormatError(f"{path}: model_config {exc}") from None
+    url = mc.get("url")
+    if (url is not None and url not in URL_VARIANTS) or (mode in URL_MODES) != (url is not None):
+        raise FormatError(f"{path}: model_config url {url!r} does not go with input mode {mode!r}")
+    alpha, beta = mc.get("gate_alpha"), mc.get("gate_beta")
+    if url is not None and not (
+        _is_number(alpha) and 0 < alpha < math.inf and _is_number(beta) and math.isfinite(beta)
+    ):
+        raise FormatError(f"{path}: model_config needs gate_alpha > 0 and a finite gate_beta")
     return dict(mc)
 
 
@@ -210,7 +220,11 @@ def check_agreement(
             tuple(mc.get("lidar_scales", LIDAR_SCALES)) if "lidar_encoder" in mc else None,
         ),
         ("self_supervised", config.self_supervised, kind == "self-supervised"),
+        ("url", config.url, mc.get("url")),
     ]
+    if mc.get("url") is not None:
+        pairs.append(("gate_alpha", config.gate_alpha, mc["gate_alpha"]))
+        pairs.append(("gate_beta", config.gate_beta, mc["gate_beta"]))
     if mc.get("output", "depth") == "depth":
         pairs.append(("final_layer", config.final_layer, mc["final_layer"]))
     if config.selfsup is not None and pc is not None:

@@ -35,6 +35,7 @@ from .model import (
     check_lidar_scales,
 )
 from .runtime import resolve_device
+from .url import GATE_ALPHA, GATE_BETA, check_url_settings
 
 __all__ = [
     "CAMERA_FREE_MODES",
@@ -387,6 +388,8 @@ class TrainConfig:
     network (:mod:`sparsetools.train.model`; EffisDepth's layout, so ``input_mode`` must then
     be ``'rgb'``) that feeds the encoder levels of ``lidar_scales`` (default 1/2 .. 1/16;
     configurations written before 0.4 lack the key and fed every level, 1 .. 1/16).
+    ``url`` (``'residual'``, ``'gated'``), ``densifier`` (its checkpoint) and the gate's
+    ``gate_alpha``, ``gate_beta`` belong to ``input_mode='rgbdu'`` (:mod:`sparsetools.train.url`).
     """
 
     dataset: str
@@ -416,6 +419,10 @@ class TrainConfig:
     jitter: float = 0.2
     lidar_encoder: str = "none"
     lidar_scales: tuple[int, ...] = DEFAULT_LIDAR_SCALES
+    url: str | None = None
+    densifier: str | None = None
+    gate_alpha: float = GATE_ALPHA
+    gate_beta: float = GATE_BETA
     selfsup: SelfSupSettings | None = None
 
     #: Fields that may change when a run is resumed (they do not alter the maths).
@@ -480,6 +487,7 @@ class TrainConfig:
                 f"unknown input mode {self.input_mode!r}; choose one of {sorted(INPUT_CHANNELS)}",
                 param="input_mode",
             )
+        check_url_settings(self)
         if self.loss not in LOSSES:
             raise ParameterError(
                 f"unknown loss {self.loss!r}; choose one of {sorted(LOSSES)}", param="loss"

@@ -7,6 +7,8 @@ resampling for both depth maps, so no depth value is invented) and a colour jitt
 The input mode ``rgbdc`` adds the confidence map stored by ``dataset build --confidence``
 (``jbf-expand``'s ``<frame>_conf.png``): it goes through the same crop, flip and
 nearest-neighbour resize as the sparse depth it describes, and is not divided by the scale.
+The input mode ``rgbdu`` (URL) adds the learned densifier's ``D_c`` and ``U``, computed from the
+sparse map after the augmentation (:class:`DepthDataset`'s ``densifier``).
 
 Randomness: each sample's augmentation draws from a generator seeded with
 ``(seed, epoch, sample index)``, so a run is reproducible whatever the number of DataLoader
@@ -267,10 +269,15 @@ class DepthDataset(Dataset):
         The network input the samples are for. ``'rgbdc'`` (:data:`CONFIDENCE_MODES`) loads
         the confidence maps too and refuses, here, a split where a sample has none
         (:func:`check_confidence`).
+    densifier : LearnedDensifier, optional
+        URL (input mode ``'rgbdu'``): computes each item's ``D_c`` and ``U`` from its sparse
+        map as the network sees it (augmented, cropped), under ``torch.inference_mode``: a
+        deterministic function of that map (:mod:`sparsetools.train.url`).
 
     Each item is a dict: ``rgb`` (3, h, w) float32 0..1, ``sparse`` and ``gt`` (1, h, w)
-    float32 metres (``gt`` zeros when the sample has none), ``index`` (int), and for
-    ``rgbdc`` ``confidence`` (1, h, w) float32 0..1.
+    float32 metres (``gt`` zeros when the sample has none), ``index`` (int), for
+    ``rgbdc`` ``confidence`` (1, h, w) float32 0..1, and with a ``densifier`` ``coarse``
+    (1, h, w) float32 metres and ``log_var`` (1, h, w) float32 log of square metres.
     """
 
     def __init__(
@@ -285,8 +292,10 @@ class DepthDataset(Dataset):
         scale_range: tuple[float, float] = (1.0, 1.0),
         jitter: float = 0.2,
         input_mode: str | None = None,
+        densifier=None,
     ):
         self.reader = open_split(path, split, need_gt=need_gt)
+        self.densifier = densifier
         self.with_confidence = input_mode in CONFIDENCE_MODES
         if self.with_confidence:
             check_confidence(self.reader, split=split, input_mode=input_mode)
@@ -363,6 +372,10 @@ class DepthDataset(Dataset):
         }
         if self.with_confidence:
             item["confidence"] = torch.from_numpy(np.ascontiguousarray(maps[2], np.float32)[None])
+        if self.densifier is not None:
+            coarse, log_var = self.densifier.densify(maps[0])
+            item["coarse"] = torch.from_numpy(coarse[None])
+            item["log_var"] = torch.from_numpy(log_var[None])
         return item
 
 

@@ -91,6 +91,7 @@ __all__ = [
     "LearnedDensifier",
     "SparseDensifier",
     "build_densifier",
+    "check_densifier_record",
     "classical_base",
     "densifier_loss",
     "heteroscedastic_loss",
@@ -101,7 +102,7 @@ __all__ = [
 
 DENSIFIER_FORMAT = "sparsetools-densifier-checkpoint"
 DENSIFIER_VERSION = 1
-#: The checkpoint's file name in a run folder (``--model RUN_DIR`` means this file).
+#: The checkpoint's file name in a run folder (``--densifier RUN_DIR`` means this file).
 CHECKPOINT_NAME = "densifier.pt"
 #: Widths above this are refused in a checkpoint before any layer is allocated.
 MAX_DENSIFIER_WIDTH = 256
@@ -459,6 +460,26 @@ def load_densifier(path: str | os.PathLike) -> DensifierCheckpoint:
     return DensifierCheckpoint(path, mc, raw["model"], config, history, run_id)
 
 
+def check_densifier_record(record, path: Path) -> dict:
+    """The densifier a ``train --input rgbdu`` checkpoint carries
+    (:func:`sparsetools.train.url.densifier_record`), checked as :func:`load_densifier` checks
+    a file: ``model_config``, ``model`` and ``run_id``.
+
+    Raises
+    ------
+    FormatError
+        Missing, of the wrong types or size, or weights that do not fit (naming ``path``).
+    """
+    if not isinstance(record, dict):
+        raise FormatError(f"{path}: a URL checkpoint without its densifier")
+    mc = _check_model_config(record.get("model_config"), path)
+    check_weights(record.get("model"), lambda: build_densifier(mc), path, "densifier")
+    run_id = record.get("run_id")
+    if not (isinstance(run_id, str) and RUN_ID.fullmatch(run_id)):
+        raise FormatError(f"{path}: the densifier's run_id must be 32 hex digits")
+    return {"model_config": mc, "model": record["model"], "run_id": run_id}
+
+
 # -- inference -----------------------------------------------------------------------------------
 
 
@@ -497,6 +518,20 @@ class LearnedDensifier:
         self.max_depth = ckpt.config.get("max_depth")
         self.threads = check_int_range(threads, "threads", low=1)
         self._net: SparseDensifier | None = None
+
+    @classmethod
+    def from_record(cls, record: dict, *, path: Path, threads: int = 1) -> LearnedDensifier:
+        """The densifier a URL checkpoint carries (:func:`check_densifier_record`'s output),
+        without reading its file; ``path`` (the checkpoint) is named in errors."""
+        self = cls.__new__(cls)
+        self.path = Path(path)
+        self.model_config = dict(record["model_config"])
+        self.weights = record["model"]
+        self.run_id = record["run_id"]
+        self.max_depth = None
+        self.threads = check_int_range(threads, "threads", low=1)
+        self._net = None
+        return self
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)

@@ -15,7 +15,8 @@
   live in :mod:`sparsetools.train.results`, which needs no torch, and are re-exported here.
 
 A model of input mode ``rgbdc`` is fed the split's confidence maps (the dataset refuses a split
-without them before evaluating anything).
+without them before evaluating anything); a URL model (``rgbdu``) the ``D_c`` and ``U`` of the
+densifier its checkpoint carries.
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ from .results import (
     write_eval_results,
 )
 from .runtime import batches, make_loader, progress_bar, resolve_device, torch_settings
+from .url import open_densifier
 
 __all__ = [
     "EvalResult",
@@ -108,12 +110,13 @@ def rgb_uint8(rgb: torch.Tensor) -> np.ndarray:
 def batch_inputs(batch: dict, device: torch.device) -> tuple[torch.Tensor, torch.Tensor, dict]:
     """What :meth:`DepthCompletionUNet.run` / ``depth_of`` take, from a :class:`DepthDataset`
     batch: ``rgb`` (B, 3, H, W), ``sparse`` (B, 1, H, W) metres, and the keyword arguments of
-    the input mode (``confidence`` (B, 1, H, W) for ``rgbdc``; none otherwise), on ``device``.
+    the input mode (``confidence`` (B, 1, H, W) for ``rgbdc``; ``coarse`` and ``log_var``
+    (B, 1, H, W) for ``rgbdu``; none otherwise), on ``device``.
 
     Use ``model.run(rgb, sparse, **extra)``.
     """
     rgb, sparse = batch["rgb"].to(device), batch["sparse"].to(device)
-    extra = {"confidence": batch["confidence"].to(device)} if "confidence" in batch else {}
+    extra = {k: batch[k].to(device) for k in ("confidence", "coarse", "log_var") if k in batch}
     return rgb, sparse, extra
 
 
@@ -282,7 +285,13 @@ def evaluate_checkpoint(
     selfsup = ckpt.config.selfsup
     if median_scaling is None:
         median_scaling = selfsup is not None and not selfsup.metric_scale
-    data = DepthDataset(dataset, split, augment=False, input_mode=ckpt.input_mode)
+    data = DepthDataset(
+        dataset,
+        split,
+        augment=False,
+        input_mode=ckpt.input_mode,
+        densifier=open_densifier(ckpt.config, ckpt),
+    )
     with torch_settings(None, dev):
         result = run_evaluation(
             model,

@@ -38,6 +38,7 @@ from .config import TrainConfig, resumed_config
 from .epochs import TrainSummary, fit
 from .runtime import default_threads
 from .supervised import SupervisedTask
+from .url import densifier_file
 
 __all__ = ["TrainSummary", "prepare_run", "train"]
 
@@ -46,11 +47,14 @@ log = logging.getLogger(__name__)
 
 def _finished_with_these_settings(config: TrainConfig, out: Path) -> bool:
     """True when ``out`` holds a run that finished ``config.epochs`` epochs with every other
-    setting equal to ``config``'s, and the dataset's manifest is older than its ``last.pt``."""
+    setting equal to ``config``'s, and the dataset's manifest (and a URL run's densifier
+    checkpoint) is older than its ``last.pt``."""
     last = out / "last.pt"
-    manifest = Path(config.dataset) / "manifest.parquet"
+    inputs = [Path(config.dataset) / "manifest.parquet"]
+    if config.densifier is not None:
+        inputs.append(densifier_file(config.densifier))
     try:
-        if not last.is_file() or manifest.stat().st_mtime > last.stat().st_mtime:
+        if not last.is_file() or any(p.stat().st_mtime > last.stat().st_mtime for p in inputs):
             return False
         ckpt = load_checkpoint(last)
         resumed_config(config, ckpt.config, None)  # raises on any other setting
@@ -139,5 +143,5 @@ def train(
 
         task = SelfSupervisedTask(config)
     else:
-        task = SupervisedTask(config)
+        task = SupervisedTask(config, ckpt=ckpt)
     return fit(task, config, ckpt=ckpt, progress=progress, on_epoch=on_epoch)

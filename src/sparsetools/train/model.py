@@ -23,6 +23,14 @@ input ("early fusion") and go through one encoder-decoder:
   at (and next to) the LiDAR pixels, which the encoder-decoder learns only slowly. It starts at
   zero (the plain model).
 
+URL (``url``, with ``input_mode='rgbdu'``; :mod:`sparsetools.train.url`): the input is the
+image, the learned densifier's coarse depth ``D_c`` and its log-variance ``U``, and the head is
+read as URL's residual (``D_f = D_c + R``, ``R`` = 20 m times the head's linear output, which
+starts at zero: the untrained model returns ``D_c`` exactly) or as the model's own depth ``P``
+gated against ``D_c`` (``lambda(U) D_c + (1 - lambda(U)) P``, the usual softplus head for
+``P``). ``forward`` then takes ``coarse`` and ``log_var`` themselves, so the output is built
+from the exact ``D_c``, not from its scaled input channel.
+
 Inputs of any size: the network pads to a multiple of 16 at the bottom and right, and crops
 the prediction back.
 
@@ -65,6 +73,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..errors import ParameterError
+from .url import GATE_ALPHA, GATE_BETA, URL_MODES, URL_VARIANTS, gated_fusion
 
 __all__ = [
     "DEFAULT_LIDAR_SCALES",
@@ -83,9 +92,9 @@ __all__ = [
 ]
 
 #: Number of input channels of each input mode.
-INPUT_CHANNELS = {"rgb": 3, "rgbd": 4, "rgbdm": 5, "d": 1, "rgbdc": 5}
+INPUT_CHANNELS = {"rgb": 3, "rgbd": 4, "rgbdm": 5, "d": 1, "rgbdc": 5, "rgbdu": 5}
 #: Channel of the sparse depth in each mode's input (None: the mode has none).
-SPARSE_CHANNEL = {"rgb": None, "rgbd": 3, "rgbdm": 3, "d": 0, "rgbdc": 3}
+SPARSE_CHANNEL = {"rgb": None, "rgbd": 3, "rgbdm": 3, "d": 0, "rgbdc": 3, "rgbdu": None}
 #: Encoder widths at ``width = 32``.
 BASE_WIDTHS = (32, 64, 128, 256, 512)
 #: What the network predicts: metric depth, or multi-scale sigmoid disparity.
@@ -103,6 +112,8 @@ _RGB_MEAN = 0.45
 _RGB_STD = 0.225
 #: Sparse depth is fed as depth / this (metres), so typical inputs are O(1).
 _DEPTH_SCALE = 20.0
+#: The densifier's U (log of square metres, within +-12) is fed as U / this.
+_LOG_VAR_SCALE = 4.0
 _INIT_DEPTH = 10.0
 _SLOPE = 0.1
 #: Offset of the seed of a LiDAR branch's weights from the global seed (one per network).
@@ -189,26 +200,40 @@ def model_inputs(
     sparse: torch.Tensor | None,
     mode: str,
     confidence: torch.Tensor | None = None,
+    *,
+    coarse: torch.Tensor | None = None,
+    log_var: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Stack the network input of ``mode``.
 
     Parameters
     ----------
     rgb : (B, 3, H, W) float, 0..1; unused for ``mode='d'``
-    sparse : (B, 1, H, W) float, metres, 0 = no measurement; unused for ``mode='rgb'``
-    mode : {'rgb', 'rgbd', 'rgbdm', 'd', 'rgbdc'}
+    sparse : (B, 1, H, W) float, metres, 0 = no measurement; unused for ``mode='rgb'`` and
+        ``'rgbdu'``
+    mode : {'rgb', 'rgbd', 'rgbdm', 'd', 'rgbdc', 'rgbdu'}
     confidence : (B, 1, H, W) float, 0..1
         Confidence of the sparse depth (``dataset build --confidence``); ``mode='rgbdc'`` only.
+    coarse : (B, 1, H, W) float, metres
+        The learned densifier's ``D_c``; ``mode='rgbdu'`` only.
+    log_var : (B, 1, H, W) float, log of square metres
+        Its ``U = log sigma^2``; ``mode='rgbdu'`` only.
 
     Returns
     -------
     (B, C, H, W) float with C = ``INPUT_CHANNELS[mode]``: normalised rgb, depth / 20 m, then
-    the validity mask (0/1, ``rgbdm``) or the confidence (``rgbdc``); ``d``: depth / 20 m alone.
+    the validity mask (0/1, ``rgbdm``) or the confidence (``rgbdc``); ``d``: depth / 20 m alone;
+    ``rgbdu``: normalised rgb, ``D_c`` / 20 m, ``U`` / 4.
     """
     if mode not in INPUT_CHANNELS:
         raise ParameterError(f"unknown input mode {mode!r}; choose one of {sorted(INPUT_CHANNELS)}")
     if mode == "rgb":
         return (rgb - _RGB_MEAN) / _RGB_STD
+    if mode in URL_MODES:
+        if coarse is None or log_var is None:
+            raise ParameterError(f"input mode {mode!r} needs the densifier's coarse and log_var")
+        rgb_n = (rgb - _RGB_MEAN) / _RGB_STD
+        return torch.cat([rgb_n, coarse / _DEPTH_SCALE, log_var / _LOG_VAR_SCALE], dim=1)
     if sparse is None:
         raise ParameterError(f"input mode {mode!r} needs sparse depth")
     if mode == "d":
@@ -311,6 +336,11 @@ class DepthCompletionUNet(nn.Module):
     lidar_scales : tuple of int
         Encoder levels the LiDAR branch feeds, by scale (increasing values of 1, 2, 4, 8,
         16; default 2-16 as EffisDepth).
+    url : {'residual', 'gated'}, optional
+        URL's reading of the head (module docstring); required by, and only for,
+        ``input_mode='rgbdu'``; ``forward`` then needs ``coarse`` and ``log_var``.
+    gate_alpha, gate_beta : float
+        The gate of ``url='gated'`` (:func:`sparsetools.train.url.uncertainty_gate`).
     """
 
     def __init__(
@@ -324,9 +354,13 @@ class DepthCompletionUNet(nn.Module):
         initial_depth: float | None = None,
         lidar_encoder: str = "none",
         lidar_scales: tuple[int, ...] = DEFAULT_LIDAR_SCALES,
+        url: str | None = None,
+        gate_alpha: float = GATE_ALPHA,
+        gate_beta: float = GATE_BETA,
     ):
         super().__init__()
         scales = check_lidar_scales(lidar_scales)
+        _check_url(input_mode, url, output=output, final_layer=final_layer)
         if input_mode not in INPUT_CHANNELS:
             raise ParameterError(
                 f"unknown input mode {input_mode!r}; choose one of {sorted(INPUT_CHANNELS)}",
@@ -354,6 +388,8 @@ class DepthCompletionUNet(nn.Module):
         self.initial_depth = None if initial_depth is None else float(initial_depth)
         self.lidar_encoder = lidar_encoder
         self.lidar_scales = scales
+        self.url = url
+        self.gate = (float(gate_alpha), float(gate_beta))
         c_in = INPUT_CHANNELS[input_mode]
         widths = [max(1, round(b * self.width / 32)) for b in BASE_WIDTHS]
         self.widths = tuple(widths)
@@ -397,7 +433,10 @@ class DepthCompletionUNet(nn.Module):
         else:
             self.head = nn.Conv2d(widths[0], 1, 1)
             nn.init.zeros_(self.head.weight)
-            nn.init.constant_(self.head.bias, _inverse_softplus(_INIT_DEPTH / _DEPTH_SCALE))
+            if url == "residual":  # R = 0: the untrained model returns D_c
+                nn.init.zeros_(self.head.bias)
+            else:
+                nn.init.constant_(self.head.bias, _inverse_softplus(_INIT_DEPTH / _DEPTH_SCALE))
             if self.final_layer:
                 extra = 2 if SPARSE_CHANNEL[input_mode] is not None else 0  # M and M * D
                 self.adjust = nn.Conv2d(1 + c_in + extra, 1, 3, padding=1)
@@ -413,7 +452,12 @@ class DepthCompletionUNet(nn.Module):
         return INPUT_CHANNELS[self.input_mode]
 
     def forward(
-        self, x: torch.Tensor, lidar: torch.Tensor | None = None
+        self,
+        x: torch.Tensor,
+        lidar: torch.Tensor | None = None,
+        *,
+        coarse: torch.Tensor | None = None,
+        log_var: torch.Tensor | None = None,
     ) -> torch.Tensor | list[torch.Tensor]:
         """Depth (or the disparity list) of the network input ``x``.
 
@@ -424,6 +468,9 @@ class DepthCompletionUNet(nn.Module):
         lidar : (B, 1, H, W) float, metres, 0 = empty
             Sparse depth for the LiDAR branch (needed with ``lidar_encoder`` 'sfe' or
             'dense', ignored without one).
+        coarse, log_var : (B, 1, H, W) float, metres and log of square metres
+            The densifier's ``D_c`` and ``U`` that URL refines (needed with ``url``, ignored
+            without it).
         """
         if x.ndim != 4 or x.shape[1] != self.in_channels:
             raise ParameterError(
@@ -431,6 +478,13 @@ class DepthCompletionUNet(nn.Module):
                 f"got {tuple(x.shape)}"
             )
         h, w = x.shape[-2:]
+        if self.url is not None and not all(
+            t is not None and t.shape == (x.shape[0], 1, h, w) for t in (coarse, log_var)
+        ):
+            raise ParameterError(
+                f"a URL model needs coarse and log_var of shape {(x.shape[0], 1, h, w)}",
+                param="coarse",
+            )
         x = pad_to_stride(x, STRIDE).contiguous(memory_format=torch.channels_last)
         lidar_feats = None
         if self.lidar_branch is not None:
@@ -469,7 +523,12 @@ class DepthCompletionUNet(nn.Module):
                 hs, ws = -(-h // 2**s), -(-w // 2**s)
                 out.append(torch.sigmoid(head(feat))[:, :, :hs, :ws])
             return out
+        if self.url == "residual":  # D_f = D_c + R(I, U)
+            return coarse + _DEPTH_SCALE * self.head(y)[:, :, :h, :w]
         depth = _DEPTH_SCALE * F.softplus(self.head(y))
+        if self.url == "gated":
+            alpha, beta = self.gate
+            return gated_fusion(coarse, depth[:, :, :h, :w], log_var, alpha=alpha, beta=beta)
         if self.final_layer:
             coarse = depth / _DEPTH_SCALE
             parts = [coarse, x]
@@ -480,12 +539,15 @@ class DepthCompletionUNet(nn.Module):
             depth = depth + self.adjust(torch.cat(parts, dim=1)) * _DEPTH_SCALE
         return depth[:, :, :h, :w]
 
-    def predict_depth(self, x: torch.Tensor, lidar: torch.Tensor | None = None) -> torch.Tensor:
+    def predict_depth(
+        self, x: torch.Tensor, lidar: torch.Tensor | None = None, **url_maps
+    ) -> torch.Tensor:
         """(B, 1, H, W) depth in metres of the network input ``x`` (see :func:`model_inputs`).
 
-        For ``output='disparity'`` the full-resolution (scale 0) disparity as depth.
+        For ``output='disparity'`` the full-resolution (scale 0) disparity as depth;
+        ``url_maps``: ``coarse`` and ``log_var`` of a URL model (:meth:`forward`).
         """
-        out = self(x, lidar)
+        out = self(x, lidar, **url_maps)
         if self.output == "disparity":
             return disparity_to_depth(out[0], *self.depth_range)
         return out
@@ -496,6 +558,8 @@ class DepthCompletionUNet(nn.Module):
         sparse: torch.Tensor | None,
         *,
         confidence: torch.Tensor | None = None,
+        coarse: torch.Tensor | None = None,
+        log_var: torch.Tensor | None = None,
     ) -> torch.Tensor | list:
         """``forward`` on a batch: the input of the model's mode, the sparse map to its branch.
 
@@ -504,8 +568,12 @@ class DepthCompletionUNet(nn.Module):
         rgb : (B, 3, H, W) float, 0..1
         sparse : (B, 1, H, W) float, metres, 0 = empty; may be None for a camera-only model
         confidence : (B, 1, H, W) float, 0..1; needed by (only) input mode ``'rgbdc'``
+        coarse, log_var : (B, 1, H, W) float, metres and log of square metres
+            The densifier's ``D_c`` and ``U``; needed by (only) input mode ``'rgbdu'``.
         """
-        return self(model_inputs(rgb, sparse, self.input_mode, confidence), sparse)
+        maps = {} if self.url is None else {"coarse": coarse, "log_var": log_var}
+        x = model_inputs(rgb, sparse, self.input_mode, confidence, **maps)
+        return self(x, sparse, **maps)
 
     def depth_of(
         self,
@@ -513,9 +581,13 @@ class DepthCompletionUNet(nn.Module):
         sparse: torch.Tensor | None,
         *,
         confidence: torch.Tensor | None = None,
+        coarse: torch.Tensor | None = None,
+        log_var: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """:meth:`predict_depth` on a batch (as :meth:`run`): (B, 1, H, W) metres."""
-        return self.predict_depth(model_inputs(rgb, sparse, self.input_mode, confidence), sparse)
+        maps = {} if self.url is None else {"coarse": coarse, "log_var": log_var}
+        x = model_inputs(rgb, sparse, self.input_mode, confidence, **maps)
+        return self.predict_depth(x, sparse, **maps)
 
     def config(self) -> dict:
         """The constructor arguments (saved in checkpoints)."""
@@ -528,6 +600,8 @@ class DepthCompletionUNet(nn.Module):
             cfg["lidar_encoder"] = self.lidar_encoder
             # older checkpoints have no such key: every level (LIDAR_SCALES)
             cfg["lidar_scales"] = list(self.lidar_scales)
+        if self.url is not None:  # only URL models have these keys
+            cfg.update(url=self.url, gate_alpha=self.gate[0], gate_beta=self.gate[1])
         return cfg
 
 
@@ -548,6 +622,22 @@ def disparity_to_depth(sigma: torch.Tensor, min_depth: float, max_depth: float) 
     return 1.0 / (lo + (hi - lo) * sigma)
 
 
+def _check_url(input_mode: str, url: str | None, *, output: str, final_layer: bool) -> None:
+    """A URL reading only with a URL input mode, and the reverse; depth output, no final layer."""
+    if url is not None and url not in URL_VARIANTS:
+        raise ParameterError(
+            f"unknown URL variant {url!r}; choose one of {', '.join(URL_VARIANTS)}", param="url"
+        )
+    if (input_mode in URL_MODES) != (url is not None):
+        raise ParameterError(
+            f"input mode {input_mode!r} with url={url!r}: URL's variants go with input mode "
+            f"{URL_MODES[0]!r} (the densifier's D_c and U), and it needs one",
+            param="url",
+        )
+    if url is not None and (output != "depth" or final_layer):
+        raise ParameterError("a URL model has a depth output and no final layer", param="url")
+
+
 def _inverse_softplus(y: float) -> float:
     return y + math.log(-math.expm1(-y))
 
@@ -565,6 +655,9 @@ def build_model(config: dict) -> DepthCompletionUNet:
             lidar_encoder=str(config.get("lidar_encoder", "none")),
             # before 0.4 every level was fed, and checkpoints did not say so
             lidar_scales=tuple(config.get("lidar_scales", LIDAR_SCALES)),
+            url=config.get("url"),
+            gate_alpha=float(config.get("gate_alpha", GATE_ALPHA)),
+            gate_beta=float(config.get("gate_beta", GATE_BETA)),
         )
     except KeyError as exc:
         raise ParameterError(f"model configuration lacks {exc.args[0]!r}") from None

@@ -29,12 +29,13 @@ from .config import CONFIDENCE_MODES
 from .data import DepthDataset, collate, open_split
 from .evaluate import batch_inputs, open_model
 from .runtime import torch_settings
+from .url import open_densifier
 
 __all__ = ["Prediction", "Predictor", "check_dataset_inputs", "open_predictor"]
 
 #: What each input mode feeds the network besides the camera image (for messages).
 _NEEDS = {"rgb": (), "d": ("sparse",), "rgbd": ("sparse",), "rgbdm": ("sparse",),
-          "rgbdc": ("sparse", "confidence")}  # fmt: skip
+          "rgbdc": ("sparse", "confidence"), "rgbdu": ("sparse",)}  # fmt: skip
 _NOUNS = {"sparse": "sparse depth", "confidence": "confidence map"}
 
 
@@ -44,7 +45,7 @@ def check_dataset_inputs(input_mode: str, reader, *, split: str, checkpoint) -> 
     Parameters
     ----------
     input_mode : str
-        The checkpoint's (``rgb``, ``d``, ``rgbd``, ``rgbdm``, ``rgbdc``).
+        The checkpoint's (``rgb``, ``d``, ``rgbd``, ``rgbdm``, ``rgbdc``, ``rgbdu``).
     reader : DatasetReader
         The split (its manifest's ``sparse_path`` / ``sparse_parquet`` / ``confidence_path``).
     split : str
@@ -198,6 +199,7 @@ def open_predictor(
     data = DepthDataset(
         dataset, split, augment=False, need_gt=False,
         input_mode=ckpt.input_mode if ckpt.input_mode in CONFIDENCE_MODES else None,
+        densifier=open_densifier(ckpt.config, ckpt),
     )  # fmt: skip
     ckpt_file = str(Path(ckpt.path).resolve())
     rows = [reader.row(i) for i in range(len(reader))]

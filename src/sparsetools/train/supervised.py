@@ -6,6 +6,9 @@ validation loss and the depth metrics, and ``best.pt`` is the epoch with the low
 
 The depth network may have a LiDAR branch (``lidar_encoder``: EffisDepth's SFE or its dense
 twin, fused into the encoder; :mod:`sparsetools.train.model`), fed the batch's sparse depth.
+With ``input_mode='rgbdu'`` it is URL's refinement of the learned densifier's ``D_c`` and ``U``
+(:mod:`sparsetools.train.url`): the densifier computes them as samples are loaded, and every
+checkpoint carries it.
 The epochs themselves are :func:`sparsetools.train.epochs.fit`'s.
 """
 
@@ -21,6 +24,7 @@ from .epochs import StepResult, Validation
 from .evaluate import batch_inputs, cap_depth, picture_indices, run_evaluation
 from .losses import depth_loss
 from .model import DepthCompletionUNet
+from .url import densifier_record, open_densifier
 
 __all__ = ["SupervisedTask"]
 
@@ -32,21 +36,25 @@ class SupervisedTask:
     ----------
     config : TrainConfig
         Checked, without ``selfsup``.
+    ckpt : Checkpoint, optional
+        The checkpoint a resumed run continues (a URL run takes its densifier from it).
 
     Raises
     ------
     ParameterError, FormatError
         A missing or empty split, one without ground truth, a crop larger than the images
-        (:class:`~sparsetools.train.data.DepthDataset`).
+        (:class:`~sparsetools.train.data.DepthDataset`); a missing or foreign densifier
+        checkpoint (URL).
     """
 
     self_supervised = False
     best_metric = "rmse"
 
-    def __init__(self, config: TrainConfig):
+    def __init__(self, config: TrainConfig, *, ckpt: Checkpoint | None = None):
         self.config = config
         self.progress_terms = {"loss": "loss"}
         self.loss_name = config.loss
+        self.densifier = open_densifier(config, ckpt)
         self.train_set = DepthDataset(
             config.dataset,
             config.train_split,
@@ -56,9 +64,14 @@ class SupervisedTask:
             scale_range=config.scale_range,
             jitter=config.jitter,
             input_mode=config.input_mode,
+            densifier=self.densifier,
         )
         self.val_set = DepthDataset(
-            config.dataset, config.val_split, augment=False, input_mode=config.input_mode
+            config.dataset,
+            config.val_split,
+            augment=False,
+            input_mode=config.input_mode,
+            densifier=self.densifier,
         )
         self.pictures = picture_indices(len(self.val_set), config.pictures)
         self.device = torch.device("cpu")
@@ -73,6 +86,9 @@ class SupervisedTask:
             final_layer=config.final_layer,
             lidar_encoder=config.lidar_encoder,
             lidar_scales=config.lidar_scales,
+            url=config.url,
+            gate_alpha=config.gate_alpha,
+            gate_beta=config.gate_beta,
         ).to(device)
         return [self.model]
 
@@ -109,10 +125,11 @@ class SupervisedTask:
         return Validation(columns, val.pictures)
 
     def checkpoint_extras(self) -> dict:
-        return {}
+        return {} if self.densifier is None else {"densifier": densifier_record(self.densifier)}
 
     def finish(self, state: TrainingState) -> dict:
-        return {"selected_by": "gt"}
+        url = {} if self.config.url is None else {"url": self.config.url}
+        return {"selected_by": "gt", **url}
 
     def describe(self, row: dict) -> str:
         return f"train loss {row['train_loss']:.4g}, val RMSE {row['rmse']:.4g} m"
