@@ -95,6 +95,11 @@ def fmt(a):
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--docs", action="store_true", help="write the docs/img pictures")
+    ap.add_argument(
+        "--learned",
+        help="densifier.pt checkpoint(s) of train-densifier, comma-separated (one per seed): "
+        "also compare `densify --method learned` with IP-Basic on the real frame",
+    )
     args, _ = ap.parse_known_args()
     if not SEQ.is_dir():
         sys.exit(f"real sequence not found at {SEQ}")
@@ -234,11 +239,47 @@ def main() -> None:
             f"{m['rmse'] * 1e3:5.0f} mm, MAE {m['mae'] * 1e3:4.0f} mm, median {med * 1e3:3.0f} mm, "
             f"iRMSE {m['irmse']:5.2f}, iMAE {m['imae']:4.2f} 1/km"
         )
+    if args.learned:
+        learned_rows(args.learned.split(","), single, odd_map, even_map, others.depth)
     dense_acc = ip_basic(acc.depth)
     print(f"load average (1, 5, 15 min): {os.getloadavg()}")
 
     if args.docs:
         pictures(image, single, acc, dense, dense_acc)
+
+
+def learned_rows(checkpoints, single, odd_map, even_map, held_out) -> None:
+    """The learned densifier (issue 29) on the same real inputs and references as IP-Basic
+    above: RMSE / MAE on the pixels it fills and on those IP-Basic fills too, and the mean
+    predicted sigma = exp(U / 2) beside the mean absolute error (a calibrated U gives
+    MAE / sigma near sqrt(2 / pi) = 0.80)."""
+    from sparsetools.ops.densify import ip_basic
+    from sparsetools.ops.metrics import depth_metrics
+    from sparsetools.train.densifier import LearnedDensifier
+
+    cases = (
+        ("odd rings (32 beams) -> even rings", odd_map, even_map),
+        ("64 beams -> held-out accumulation", single, held_out),
+    )
+    print("\nlearned densifier (densify --method learned) on the same frame, one thread:")
+    for ckpt in checkpoints:
+        model = LearnedDensifier(ckpt)
+        for name, inp, ref in cases:
+            ref = np.where(ref < 80, ref, 0)
+            t0 = time.perf_counter()
+            pred, u = model.densify(inp)
+            seconds = time.perf_counter() - t0
+            both_ip = ip_basic(inp).depth > 0
+            line = []
+            for where, label in ((pred > 0, "all it fills"), ((pred > 0) & both_ip, "IP-Basic's")):
+                m = depth_metrics(np.where(where, pred, 0), np.where(where, ref, 0), max_depth=80.0)
+                line.append(f"{label}: {m['n_pixels']} px RMSE {m['rmse'] * 1e3:5.0f} mm MAE "
+                            f"{m['mae'] * 1e3:4.0f} mm")  # fmt: skip
+            ok = (pred > 0) & (ref > 0)
+            mae = float(np.mean(np.abs(pred[ok] - ref[ok])))
+            sigma = float(np.mean(np.exp(u[ok] / 2.0)))
+            print(f"  {Path(ckpt).parent.name} {name:<36} {' | '.join(line)} | mean sigma "
+                  f"{sigma * 1e3:5.0f} mm, MAE / sigma {mae / sigma:4.2f} | {seconds:.2f} s")  # fmt: skip
 
 
 def pictures(image, single, acc, dense, dense_acc):
