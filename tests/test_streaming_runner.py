@@ -403,3 +403,15 @@ def test_journal_of_a_resumed_run_equals_an_uninterrupted_ones(tmp_path):
     run_frames(WriteRandom(), tasks(b, srcs), spec=RunSpec("t", b, {}))
     assert os.stat(jb).st_ino == before.st_ino and os.stat(jb).st_mtime_ns == before.st_mtime_ns
     assert key_hash("q/000") == key_hash("q/000")
+
+
+@pytest.mark.parametrize("root", ["/a/b", "a/b/", ".", "/a//b/./c", Path("/x/y")])
+def test_frame_path_is_the_pathlib_join(root):
+    # FrameKey.path parses one joined string (speed); it must equal joining Path parts
+    for seq in ("", "s", "s/t"):
+        for prefix in ("", "calib"):
+            old = Path(root)
+            old = old / prefix if prefix else old
+            old = old / seq if seq else old
+            got = FrameKey(seq, "000001").path(root, ".png", prefix=prefix)
+            assert got == old / "000001.png" and str(got) == str(old / "000001.png")

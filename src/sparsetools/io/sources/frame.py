@@ -76,12 +76,14 @@ class FrameKey:
 
     def path(self, root: str | os.PathLike, suffix: str, *, prefix: str = "") -> Path:
         """``root/<prefix>/<sequence>/<frame><suffix>`` (empty parts left out)."""
-        p = Path(root)
+        # one string, parsed once: the frame runner makes two of these per frame and task
+        parts = [os.fspath(root)]
         if prefix:
-            p = p / prefix
+            parts.append(prefix)
         if self.sequence:
-            p = p / self.sequence
-        return p / f"{self.frame}{suffix}"
+            parts.append(self.sequence)
+        parts.append(f"{self.frame}{suffix}")
+        return Path(os.path.join(*parts))
 
 
 @dataclass(frozen=True)
