@@ -251,7 +251,8 @@ def checkpoint(tmp_path_factory) -> Path:
     assert r.exit_code == 0, r.output
     summary = json.loads(r.stdout)
     assert summary["steps"] == 3 and summary["frames"] == 1
-    assert {p.name for p in out.iterdir()} == {"densifier.pt", "metrics.csv", "config.json"}
+    assert {p.name for p in out.iterdir()} == {"densifier.pt", "metrics.csv", "config.json",
+                                               ".sparsetools"}  # fmt: skip
     return out / "densifier.pt"
 
 
@@ -265,9 +266,21 @@ def sparse_maps(tmp_path_factory) -> Path:
     return out
 
 
-def test_train_densifier_refuses_a_taken_folder(checkpoint):
-    line = one_line_error(run("train-densifier", "-o", checkpoint.parent, "--steps", "1"))
-    assert "is not empty" in line and "--overwrite" in line
+def test_train_densifier_reruns_and_refuses_a_taken_folder(checkpoint, tmp_path):
+    same = ("train-densifier", "-o", checkpoint.parent, "--sim-frames", "1", "--image-size",
+            "160x48", "--steps", "3", "--tile-size", "64x32", "--width", "2", "--threads", "1",
+            "--beam-counts", "64,4")  # fmt: skip
+    before = checkpoint.stat().st_mtime_ns
+    r = run(*same)
+    assert r.exit_code == 0 and "up to date" in r.stdout
+    assert checkpoint.stat().st_mtime_ns == before  # nothing trained or written again
+    other = [a if a != "3" else "1" for a in same]  # --steps 1, every other option the same
+    line = one_line_error(run(*other))
+    assert "made with --steps 3, not 1" in line and "--overwrite" in line
+    (tmp_path / "taken").mkdir()
+    (tmp_path / "taken" / "notes.txt").write_text("mine")
+    line = one_line_error(run("train-densifier", "-o", tmp_path / "taken", "--steps", "1"))
+    assert "no record" in line and (tmp_path / "taken" / "notes.txt").read_text() == "mine"
     r = run("train-densifier", SYNTH, "-o", checkpoint.parent / "x", "--sim-frames", "3")
     assert r.exit_code == 2 and "--sim-frames" in r.stderr
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import click
@@ -152,6 +153,22 @@ def train_densifier(scenes, out_dir, sim_frames, image_size, beam_counts, steps,
         threads=threads,
         device=device,
     )
-    progress = not root_flag("quiet") and click.get_text_stream("stderr").isatty()
+    progress = not root_flag("quiet") and sys.stderr.isatty()
+    tree = None
+    if not config.scenes:
+        # simulated frames are a function of the settings: a finished run with the same ones is
+        # up to date (a rerun does nothing), one made with others is refused naming the option
+        from ..pipeline.provenance import OutputTree
+        from ..train.densifier_train import RUN_FILES, recorded_run
+
+        tree = OutputTree(out_dir, "train-densifier", config.to_dict(), noun="a densifier run",
+                          overwrite=overwrite)  # fmt: skip
+        done = recorded_run(out_dir) if tree.up_to_date() else None
+        if done is not None:
+            emit_summary(done.to_dict(), as_json=as_json,
+                         title=f"densifier in {out_dir} is up to date")  # fmt: skip
+            return
     run = train_densifier(config, out_dir, overwrite=overwrite, progress=progress)
+    if tree is not None:
+        tree.record([Path(out_dir) / name for name in RUN_FILES])
     emit_summary(run.to_dict(), as_json=as_json, title=f"densifier trained in {out_dir}")

@@ -502,3 +502,19 @@ def train_densifier(
     write_json(out / "config.json", {"run_id": run_id, "config": config.to_dict(),
                                      "summary": run.to_dict()})  # fmt: skip
     return run
+
+
+#: The files a run writes (what its folder's record lists).
+RUN_FILES = (CHECKPOINT_NAME, "metrics.csv", "config.json")
+
+
+def recorded_run(out: str | Path) -> DensifierRun | None:
+    """The summary a finished run left in ``config.json`` (None when it cannot be read: the
+    run is made again)."""
+    import json
+
+    try:
+        summary = json.loads((Path(out) / "config.json").read_text("utf-8"))["summary"]
+        return DensifierRun(**{f: summary[f] for f in DensifierRun.__dataclass_fields__})
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
