@@ -41,7 +41,6 @@ import csv
 import json
 import math
 import os
-import re
 import uuid
 import warnings
 import zipfile
@@ -53,12 +52,14 @@ import torch
 from ..errors import FormatError, OutputError, ParameterError
 from .checkpoint_checks import (
     CHECKPOINT_FORMAT,
+    RUN_ID,
     check_agreement,
     check_discriminator,
     check_extras,
     check_model_config,
     check_pose_config,
     check_weights,
+    load_weights,
     read_checkpoint_file,
 )
 from .config import TrainConfig
@@ -92,7 +93,6 @@ RUN_FILES = ("last.pt", "best.pt", "metrics.csv")
 #: The other files a run writes; in a folder without a run they are someone else's.
 OTHER_RUN_FILES = ("config.json", "curves.png", "predictions")
 #: What a run id looks like (:func:`new_run_id`).
-RUN_ID = re.compile(r"[0-9a-f]{32}")
 #: Larger run files are not read for their run id (``config.json`` is about 2 KB, a
 #: ``metrics.csv`` of 1,000 epochs about 400 KB).
 _MAX_RECORD_BYTES = 64 << 20
@@ -250,7 +250,7 @@ class Checkpoint:
         The run the checkpoint belongs to (None: written by sparsetools 0.2.0, before run ids).
     densifier : dict or None
         The learned densifier of a URL run (``input_mode='rgbdu'``): ``model_config``,
-        ``model`` and ``run_id`` (:func:`sparsetools.train.url.densifier_record`).
+        ``model`` and ``run_id`` (:func:`sparsetools.train.densifier.densifier_record`).
     """
 
     path: Path
@@ -480,16 +480,6 @@ def load_checkpoint(path: str | os.PathLike, *, input_mode: str | None = None) -
         discriminator_optimizer=raw.get("discriminator_optimizer") if dc is not None else None,
         densifier=densifier,
     )
-
-
-def load_weights(module: torch.nn.Module, weights: dict, path: Path, what: str) -> None:
-    """Load a state dict; a mismatch is a one-line :class:`FormatError` naming ``path``."""
-    try:
-        module.load_state_dict(weights)
-    except RuntimeError as exc:
-        first = str(exc).strip().splitlines()
-        detail = first[1].strip() if len(first) > 1 else first[0]
-        raise FormatError(f"{path}: {what} weights do not fit the model ({detail})") from exc
 
 
 def restore_optimizer(

@@ -15,6 +15,7 @@ known configuration, fitting weights and an optimizer state; a URL model's readi
 from __future__ import annotations
 
 import math
+import re
 import warnings
 import zipfile
 from collections.abc import Callable
@@ -27,14 +28,19 @@ from .config import MAX_WIDTH, TrainConfig
 from .model import INPUT_CHANNELS, LIDAR_ENCODERS, LIDAR_SCALES, OUTPUTS, check_lidar_scales
 from .url import URL_MODES, URL_VARIANTS
 
+#: A run id: 32 hex digits (``uuid4().hex``).
+RUN_ID = re.compile(r"[0-9a-f]{32}")
+
 __all__ = [
     "CHECKPOINT_FORMAT",
+    "RUN_ID",
     "check_agreement",
     "check_discriminator",
     "check_extras",
     "check_model_config",
     "check_pose_config",
     "check_weights",
+    "load_weights",
     "read_checkpoint_file",
 ]
 
@@ -282,3 +288,13 @@ def check_extras(raw: dict, path: Path) -> None:
     sbm = raw.get("sbm_threshold")
     if sbm is not None and not (_is_number(sbm) and math.isfinite(sbm)):
         raise FormatError(f"{path}: sbm_threshold must be a finite number")
+
+
+def load_weights(module: torch.nn.Module, weights: dict, path: Path, what: str) -> None:
+    """Load a state dict; a mismatch is a one-line :class:`FormatError` naming ``path``."""
+    try:
+        module.load_state_dict(weights)
+    except RuntimeError as exc:
+        first = str(exc).strip().splitlines()
+        detail = first[1].strip() if len(first) > 1 else first[0]
+        raise FormatError(f"{path}: {what} weights do not fit the model ({detail})") from exc

@@ -78,9 +78,9 @@ from ..validate import (
     check_positive,
     check_shape,
 )
-from .checkpoint import RUN_ID, load_weights
-from .checkpoint_checks import check_weights, read_checkpoint_file
+from .checkpoint_checks import RUN_ID, check_weights, load_weights, read_checkpoint_file
 from .runtime import save_torch
+from .url import URL_MODES
 
 __all__ = [
     "CHECKPOINT_NAME",
@@ -93,9 +93,12 @@ __all__ = [
     "build_densifier",
     "check_densifier_record",
     "classical_base",
+    "densifier_file",
     "densifier_loss",
+    "densifier_record",
     "heteroscedastic_loss",
     "load_densifier",
+    "open_densifier",
     "push_pull",
     "save_densifier",
 ]
@@ -462,7 +465,7 @@ def load_densifier(path: str | os.PathLike) -> DensifierCheckpoint:
 
 def check_densifier_record(record, path: Path) -> dict:
     """The densifier a ``train --input rgbdu`` checkpoint carries
-    (:func:`sparsetools.train.url.densifier_record`), checked as :func:`load_densifier` checks
+    (:func:`sparsetools.train.densifier.densifier_record`), checked as :func:`load_densifier` checks
     a file: ``model_config``, ``model`` and ``run_id``.
 
     Raises
@@ -576,3 +579,54 @@ class LearnedDensifier:
         with torch_threads(self.threads), torch.inference_mode():
             depth, log_var = self.network()(x, base)
         return depth[0, 0].numpy().copy(), log_var[0, 0].numpy().copy()
+
+
+# -- the densifier of a URL run (train --input rgbdu) ----------------------------------------
+
+
+def densifier_file(path) -> Path:
+    """The densifier checkpoint a ``--densifier`` value names (a run folder: its
+    ``densifier.pt``)."""
+    path = Path(path)
+    return path / CHECKPOINT_NAME if path.is_dir() else path
+
+
+def open_densifier(config, ckpt=None):
+    """The densifier that computes a run's ``D_c`` and ``U`` (None outside a URL mode).
+
+    Parameters
+    ----------
+    config : TrainConfig
+        Checked (:func:`~.url.check_url_settings`).
+    ckpt : Checkpoint, optional
+        The run's checkpoint (``--resume``, ``eval``, ``predict``): its embedded densifier
+        is used and the ``--densifier`` file is not read.
+
+    Returns
+    -------
+    LearnedDensifier or None
+        One torch thread per call.
+
+    Raises
+    ------
+    FormatError
+        A missing or foreign densifier checkpoint (one line naming it), or a checkpoint of a
+        URL run without its densifier.
+    """
+    if config.input_mode not in URL_MODES:
+        return None
+    if ckpt is None:
+        return LearnedDensifier(config.densifier)
+    if ckpt.densifier is None:
+        raise FormatError(f"{ckpt.path}: a URL checkpoint without its densifier")
+    return LearnedDensifier.from_record(ckpt.densifier, path=ckpt.path)
+
+
+def densifier_record(densifier) -> dict:
+    """What a checkpoint keeps of a :class:`LearnedDensifier`: its constructor
+    arguments (``model_config``), weights (``model``) and ``run_id``."""
+    return {
+        "model_config": dict(densifier.model_config),
+        "model": dict(densifier.weights),
+        "run_id": densifier.run_id,
+    }

@@ -31,6 +31,7 @@ import torch
 from ..ops.metrics import aggregate_metrics, depth_metrics
 from .checkpoint import Checkpoint, load_checkpoint, model_from_checkpoint
 from .data import DepthDataset, collate
+from .densifier import open_densifier
 from .losses import depth_loss
 from .model import DepthCompletionUNet
 from .results import (
@@ -41,7 +42,6 @@ from .results import (
     write_eval_results,
 )
 from .runtime import batches, make_loader, progress_bar, resolve_device, torch_settings
-from .url import open_densifier
 
 __all__ = [
     "EvalResult",

@@ -35,10 +35,10 @@ from pathlib import Path
 from ..errors import SparsetoolsError
 from .checkpoint import check_run_dir, load_checkpoint, resume_run_id
 from .config import TrainConfig, resumed_config
+from .densifier import densifier_file
 from .epochs import TrainSummary, fit
 from .runtime import default_threads
 from .supervised import SupervisedTask
-from .url import densifier_file
 
 __all__ = ["TrainSummary", "prepare_run", "train"]
 

@@ -27,9 +27,9 @@ import torch
 from ..errors import ParameterError
 from .config import CONFIDENCE_MODES
 from .data import DepthDataset, collate, open_split
+from .densifier import open_densifier
 from .evaluate import batch_inputs, open_model
 from .runtime import torch_settings
-from .url import open_densifier
 
 __all__ = ["Prediction", "Predictor", "check_dataset_inputs", "open_predictor"]
 

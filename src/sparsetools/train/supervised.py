@@ -20,11 +20,11 @@ from ..ops.metrics import METRIC_NAMES, aggregate_metrics
 from .checkpoint import Checkpoint, TrainingState, load_weights
 from .config import TrainConfig
 from .data import DepthDataset
+from .densifier import densifier_record, open_densifier
 from .epochs import StepResult, Validation
 from .evaluate import batch_inputs, cap_depth, picture_indices, run_evaluation
 from .losses import depth_loss
 from .model import DepthCompletionUNet
-from .url import densifier_record, open_densifier
 
 __all__ = ["SupervisedTask"]
 

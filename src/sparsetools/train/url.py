@@ -28,11 +28,9 @@ started with.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import torch
 
-from ..errors import FormatError, ParameterError
+from ..errors import ParameterError
 from ..ops.uncertainty import GATE_ALPHA, GATE_BETA
 from ..validate import check_finite, check_positive
 
@@ -42,10 +40,7 @@ __all__ = [
     "URL_MODES",
     "URL_VARIANTS",
     "check_url_settings",
-    "densifier_file",
-    "densifier_record",
     "gated_fusion",
-    "open_densifier",
     "uncertainty_gate",
 ]
 
@@ -168,55 +163,3 @@ def check_url_settings(config) -> None:
             "--self-supervised",
             param="--input",
         )
-
-
-def densifier_file(path) -> Path:
-    """The densifier checkpoint a ``--densifier`` value names (a run folder: its
-    ``densifier.pt``)."""
-    from .densifier import CHECKPOINT_NAME
-
-    path = Path(path)
-    return path / CHECKPOINT_NAME if path.is_dir() else path
-
-
-def open_densifier(config, ckpt=None):
-    """The densifier that computes a run's ``D_c`` and ``U`` (None outside a URL mode).
-
-    Parameters
-    ----------
-    config : TrainConfig
-        Checked (:func:`check_url_settings`).
-    ckpt : Checkpoint, optional
-        The run's checkpoint (``--resume``, ``eval``, ``predict``): its embedded densifier
-        is used and the ``--densifier`` file is not read.
-
-    Returns
-    -------
-    LearnedDensifier or None
-        One torch thread per call.
-
-    Raises
-    ------
-    FormatError
-        A missing or foreign densifier checkpoint (one line naming it), or a checkpoint of a
-        URL run without its densifier.
-    """
-    if config.input_mode not in URL_MODES:
-        return None
-    from .densifier import LearnedDensifier  # it imports the checkpoint module: not at the top
-
-    if ckpt is None:
-        return LearnedDensifier(config.densifier)
-    if ckpt.densifier is None:
-        raise FormatError(f"{ckpt.path}: a URL checkpoint without its densifier")
-    return LearnedDensifier.from_record(ckpt.densifier, path=ckpt.path)
-
-
-def densifier_record(densifier) -> dict:
-    """What a checkpoint keeps of a :class:`~.densifier.LearnedDensifier`: its constructor
-    arguments (``model_config``), weights (``model``) and ``run_id``."""
-    return {
-        "model_config": dict(densifier.model_config),
-        "model": dict(densifier.weights),
-        "run_id": densifier.run_id,
-    }
