@@ -450,17 +450,14 @@ def load_densifier(path: str | os.PathLike) -> DensifierCheckpoint:
         raise FormatError(f"{path}: checkpoint version must be a positive integer")
     if version > DENSIFIER_VERSION:
         raise FormatError(f"{path}: checkpoint version {version} is newer than this sparsetools")
-    mc = _check_model_config(raw.get("model_config"), path)
-    check_weights(raw.get("model"), lambda: build_densifier(mc), path, "densifier")
-    run_id = raw.get("run_id")
-    if not (isinstance(run_id, str) and RUN_ID.fullmatch(run_id)):
-        raise FormatError(f"{path}: run_id must be 32 hex digits")
+    rec = check_densifier_record(raw, path)  # model_config, weights and run_id, as embedded
     config, history = raw.get("config"), raw.get("history")
     if not isinstance(config, dict):
         raise FormatError(f"{path}: incomplete checkpoint (no training configuration)")
     if not isinstance(history, list) or not all(isinstance(r, dict) for r in history):
         raise FormatError(f"{path}: history must be a list of rows")
-    return DensifierCheckpoint(path, mc, raw["model"], config, history, run_id)
+    return DensifierCheckpoint(path, rec["model_config"], rec["model"], config, history,
+                               rec["run_id"])  # fmt: skip
 
 
 def check_densifier_record(record, path: Path) -> dict:
