@@ -192,9 +192,9 @@ def main(argv=None) -> dict:
             MANIFEST_SCHEMA,
             depth_to_points,
             read_manifest,
-            write_manifest,
         )
         from sparsetools.io.dataset_parts import write_sparse_part
+        from sparsetools.io.manifest_writer import write_manifest
         from sparsetools.io.points_table import sparse_part_table
 
         ids, points = [], []

@@ -26,10 +26,10 @@ from sparsetools.io.dataset import (
     check_relative_path,
     read_manifest,
     resolve_in_dataset,
-    write_manifest,
 )
 from sparsetools.io.dataset_reader import DatasetReader
 from sparsetools.io.image import read_depth_png, read_image, write_depth_png, write_image
+from sparsetools.io.manifest_writer import write_manifest
 from sparsetools.pipeline import Batch
 from sparsetools.pipeline.dataset import (
     assign_splits,

@@ -102,7 +102,8 @@ def drop_confidence(dataset: Path, ids: set[str]) -> None:
     from builds with and without ``--confidence`` would have it)."""
     import pyarrow as pa
 
-    from sparsetools.io.dataset import read_manifest, write_manifest
+    from sparsetools.io.dataset import read_manifest
+    from sparsetools.io.manifest_writer import write_manifest
 
     table, info = read_manifest(dataset / "manifest.parquet")
     keep = [None if i in ids else p for i, p in zip(table.column("id").to_pylist(),

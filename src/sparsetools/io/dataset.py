@@ -31,6 +31,7 @@ import dataclasses
 import hashlib
 import json
 import os
+from collections import Counter
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
@@ -40,12 +41,12 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from ..errors import FormatError
-from .atomic import atomic_path
 from .dataset_refs import check_root_name, reference_unchanged, resolve_reference
 
 __all__ = [
     "FULL_SCHEMA",
     "MANIFEST_NAME",
+    "MANIFEST_ROW_GROUP",
     "MANIFEST_SCHEMA",
     "METADATA_INFO_KEY",
     "METADATA_VERSION_KEY",
@@ -69,7 +70,6 @@ __all__ = [
     "reference_unchanged",
     "resolve_in_dataset",
     "resolve_reference",
-    "write_manifest",
 ]
 
 #: Version of the manifest / part layout. Bump on any incompatible change.
@@ -85,6 +85,10 @@ REFERENCE_COLUMNS = ("rgb_root", "rgb_size", "rgb_mtime_ns")
 #: Schema version of a manifest without :data:`REFERENCE_COLUMNS`.
 BASE_SCHEMA_VERSION = 2
 MANIFEST_NAME = "manifest.parquet"
+#: Rows per row group of a written manifest: :class:`~.manifest_stream.ManifestBatches`
+#: decodes one row group at a time. A manifest of fewer rows is one row group, byte for
+#: byte as before.
+MANIFEST_ROW_GROUP = 4096
 SPARSE_DIR = "sparse"
 METADATA_VERSION_KEY = b"sparsetools.schema_version"
 METADATA_INFO_KEY = b"sparsetools.dataset"
@@ -471,41 +475,6 @@ def points_to_depth(
 
 
 # -- manifest and parts --------------------------------------------------------------------------
-def write_manifest(path: str | os.PathLike, table: pa.Table, *, info: dict | None = None) -> None:
-    """Write a manifest table atomically, with the schema version in the key-value metadata.
-
-    Every path column is checked with :func:`check_relative_path` first. The columns of
-    :data:`OPTIONAL_SCHEMA` are written only when some row holds a value in them.
-    """
-    # An optional column is written only when some row has a value (docs: OPTIONAL_SCHEMA).
-    optional = [
-        f
-        for f in OPTIONAL_SCHEMA
-        if f.name in table.column_names and table.column(f.name).null_count < table.num_rows
-    ]
-    table = table.select([*MANIFEST_SCHEMA.names, *(f.name for f in optional)])
-    table = table.cast(pa.schema([*MANIFEST_SCHEMA, *optional]))
-    for col in (*PATH_COLUMNS, *(c for c in OPTIONAL_PATH_COLUMNS if c in table.column_names)):
-        for rel in table.column(col).to_pylist():
-            if rel is not None:
-                check_relative_path(rel, what=col)
-    for name in table.column("rgb_root").to_pylist():
-        if name is not None:
-            check_root_name(name, what="rgb_root")
-    version = SCHEMA_VERSION
-    if table.column("rgb_root").null_count == table.num_rows:
-        # Nothing referenced: the version-2 manifest of before, column for column.
-        table = table.drop_columns(list(REFERENCE_COLUMNS))
-        version = BASE_SCHEMA_VERSION
-    meta = {
-        METADATA_VERSION_KEY: str(version).encode(),
-        METADATA_INFO_KEY: json.dumps(info or {}, sort_keys=True).encode(),
-    }
-    table = table.replace_schema_metadata(meta)
-    with atomic_path(path) as tmp:
-        pq.write_table(table, tmp, compression="zstd")
-
-
 def read_manifest(path: str | os.PathLike) -> tuple[pa.Table, dict]:
     """Read and validate ``manifest.parquet``.
 
@@ -521,15 +490,53 @@ def read_manifest(path: str | os.PathLike) -> tuple[pa.Table, dict]:
     FormatError
         Missing or unreadable file, no sparsetools metadata, a newer schema version,
         missing columns, duplicate ids, or a path that could leave the dataset.
+
+    See Also
+    --------
+    sparsetools.io.manifest_stream.ManifestBatches : the same rows and checks, a batch at a
+        time (memory flat in the rows).
     """
-    path = Path(path)
-    if not path.is_file():
-        raise FormatError(f"{path}: no such manifest (is this a sparsetools dataset folder?)")
+    path = _manifest_file(path)
     try:
         table = pq.read_table(path)
     except (pa.ArrowException, OSError) as exc:
-        raise FormatError(f"{path}: cannot read the manifest ({brief_error(exc)})") from exc
-    meta = table.schema.metadata or {}
+        raise _unreadable(path, exc) from exc
+    version, info, meta = _manifest_header(table.schema, path)
+    table = _conform_manifest(table, path, version=version, meta=meta)
+    dup = _duplicate_ids(table.column("id").to_pylist())
+    if dup:
+        raise FormatError(_duplicates_message(path, dup))
+    _check_manifest_values(table, path)
+    _check_roots(info, path)
+    return table, info
+
+
+# -- the checks of a manifest, shared with manifest_stream.ManifestBatches ---------------------
+def _manifest_file(path: str | os.PathLike) -> Path:
+    path = Path(path)
+    if not path.is_file():
+        raise FormatError(f"{path}: no such manifest (is this a sparsetools dataset folder?)")
+    return path
+
+
+def _unreadable(path: Path, exc: BaseException) -> FormatError:
+    return FormatError(f"{path}: cannot read the manifest ({brief_error(exc)})")
+
+
+def _added_columns(version: int) -> tuple[str, ...]:
+    """Columns a manifest of ``version`` may lack, read as null."""
+    return (*(V2_COLUMNS if version < 2 else ()), *REFERENCE_COLUMNS)
+
+
+def _manifest_header(schema: pa.Schema, path: Path) -> tuple[int, dict, dict]:
+    """(schema version, build information, key-value metadata) of a manifest's schema.
+
+    Raises
+    ------
+    FormatError
+        No or a newer schema version, missing columns, corrupt build information.
+    """
+    meta = schema.metadata or {}
     raw = meta.get(METADATA_VERSION_KEY)
     if raw is None:
         raise FormatError(f"{path}: no sparsetools schema version in the metadata")
@@ -542,15 +549,8 @@ def read_manifest(path: str | os.PathLike) -> tuple[pa.Table, dict]:
             f"{path}: schema version {version} was written by a newer sparsetools "
             f"(this one reads up to {SCHEMA_VERSION})"
         )
-    added = [*(V2_COLUMNS if version < 2 else ()), *REFERENCE_COLUMNS]
-    for name in added:
-        if name not in table.column_names:
-            typ = MANIFEST_SCHEMA.field(name).type
-            table = table.append_column(name, pa.nulls(table.num_rows, type=typ))
-    for f in OPTIONAL_SCHEMA:  # optional columns: absent when no row has a value
-        if f.name not in table.column_names:
-            table = table.append_column(f, pa.nulls(table.num_rows, type=f.type))
-    missing = [f.name for f in MANIFEST_SCHEMA if f.name not in table.column_names]
+    present = {*schema.names, *_added_columns(version), *OPTIONAL_SCHEMA.names}
+    missing = [f.name for f in MANIFEST_SCHEMA if f.name not in present]
     if missing:
         raise FormatError(f"{path}: manifest lacks column(s) {', '.join(missing)}")
     try:
@@ -560,45 +560,62 @@ def read_manifest(path: str | os.PathLike) -> tuple[pa.Table, dict]:
     if not isinstance(info, dict):
         raise FormatError(f"{path}: corrupt dataset metadata (not a JSON object)")
     info["schema_version"] = version
+    return version, info, meta
+
+
+def _conform_manifest(table: pa.Table, path: Path, *, version: int, meta: dict) -> pa.Table:
+    """A manifest table (or a batch of its rows) as :data:`FULL_SCHEMA`, then its extra
+    columns: the columns its version or the writer left out added as nulls, the types cast,
+    the values validated (Parquet does not check that strings are UTF-8)."""
+    for name in _added_columns(version):
+        if name not in table.column_names:
+            typ = MANIFEST_SCHEMA.field(name).type
+            table = table.append_column(name, pa.nulls(table.num_rows, type=typ))
+    for f in OPTIONAL_SCHEMA:  # optional columns: absent when no row has a value
+        if f.name not in table.column_names:
+            table = table.append_column(f, pa.nulls(table.num_rows, type=f.type))
+    for f in MANIFEST_SCHEMA:  # before the cast, which refuses them with a ValueError
+        if not f.nullable and table.column(f.name).null_count:
+            raise FormatError(f"{path}: column {f.name} holds empty (null) values")
     try:
         extra = [c for c in table.column_names if c not in FULL_SCHEMA.names]
         table = table.select([*FULL_SCHEMA.names, *extra])
         table = table.cast(
             pa.schema([*FULL_SCHEMA, *(table.schema.field(c) for c in extra)], metadata=meta),
         )
-        table.validate(full=True)  # Parquet does not check that strings are UTF-8
+        table.validate(full=True)
     except (pa.ArrowInvalid, pa.ArrowNotImplementedError) as exc:
         raise FormatError(
             f"{path}: manifest columns have unexpected types ({brief_error(exc)})"
         ) from exc
-    ids = table.column("id").to_pylist()
-    if len(set(ids)) != len(ids):
-        dup = sorted({i for i in ids if ids.count(i) > 1})
-        raise FormatError(f"{path}: duplicate sample id(s) {', '.join(dup[:5])}")
-    _check_manifest_values(table, path)
-    for col in (*PATH_COLUMNS, *OPTIONAL_PATH_COLUMNS):
-        for rel in table.column(col).to_pylist():
-            if rel is not None:
-                check_relative_path(rel, what=f"{path.name} column {col}")
-    for name in table.column("rgb_root").to_pylist():
-        if name is not None:
-            check_root_name(name, what=f"{path.name} column rgb_root")
+    return table
+
+
+def _duplicate_ids(ids: Iterable[str | None]) -> list[str]:
+    """The ids that occur more than once, sorted (nulls are :func:`_check_manifest_values`'s)."""
+    return sorted(i for i, n in Counter(ids).items() if n > 1 and i is not None)
+
+
+def _duplicates_message(path: Path, dup: list[str]) -> str:
+    return f"{path}: duplicate sample id(s) {', '.join(dup[:5])}"
+
+
+def _check_roots(info: dict, path: Path) -> None:
+    """Refuse build information whose ``roots`` is not a map of name -> path."""
     roots = info.get("roots", {})
     if not isinstance(roots, dict) or not all(
         isinstance(k, str) and isinstance(v, str) for k, v in roots.items()
     ):
         raise FormatError(f"{path}: corrupt dataset metadata (roots is not a name -> path map)")
-    return table, info
 
 
 def _check_manifest_values(table: pa.Table, path: Path) -> None:
-    """Refuse values a reader would trip on: nulls in required columns, impossible sizes,
-    a Parquet reference without its row."""
+    """Refuse values a reader would trip on: impossible sizes, a Parquet reference without
+    its row, a path that could leave the dataset, a bad root name (nulls in required columns:
+    :func:`_conform_manifest`). Row by row: a batch of a manifest's rows is checked as the
+    whole manifest is."""
     from .image import max_image_pixels
 
-    for f in MANIFEST_SCHEMA:
-        if not f.nullable and table.column(f.name).null_count:
-            raise FormatError(f"{path}: column {f.name} holds empty (null) values")
     w = table.column("width").to_numpy().astype(np.int64)
     h = table.column("height").to_numpy().astype(np.int64)
     if w.size and ((w <= 0).any() or (h <= 0).any() or (w * h > max_image_pixels()).any()):
@@ -620,3 +637,10 @@ def _check_manifest_values(table: pa.Table, path: Path) -> None:
             raise FormatError(f"{path}: a referenced image (rgb_root) has no {col}")
     if (table.column("rgb_size").fill_null(0).to_numpy() < 0).any():
         raise FormatError(f"{path}: a sample has a negative rgb_size")
+    for col in (*PATH_COLUMNS, *OPTIONAL_PATH_COLUMNS):
+        for rel in table.column(col).to_pylist():
+            if rel is not None:
+                check_relative_path(rel, what=f"{path.name} column {col}")
+    for name in table.column("rgb_root").to_pylist():
+        if name is not None:
+            check_root_name(name, what=f"{path.name} column rgb_root")

@@ -9,24 +9,30 @@ referenced and the staging folder deleted. Interrupted anywhere, the next build 
 from __future__ import annotations
 
 import dataclasses
+import heapq
+import itertools
 import logging
 import re
 import shutil
 from collections import Counter, defaultdict
-from collections.abc import Mapping
+from collections.abc import Iterable
 from pathlib import Path
+
+import numpy as np
 
 from ...errors import FormatError
 from ...io.atomic import TMP_PREFIX
 from ...io.containment import ContainedPaths, remove_output
 from ...io.dataset import (
+    FULL_SCHEMA,
     MANIFEST_NAME,
+    MANIFEST_ROW_GROUP,
+    OPTIONAL_SCHEMA,
     POINTS_DIR,
     SPARSE_DIR,
     ManifestRow,
     read_manifest,
     resolve_in_dataset,
-    write_manifest,
 )
 from ...io.dataset_parts import (
     points_part_table,
@@ -35,6 +41,7 @@ from ...io.dataset_parts import (
     write_points_part,
     write_sparse_part,
 )
+from ...io.manifest_writer import ManifestWriter
 from ...io.points_table import sparse_part_table
 from .splits import assign_splits
 from .staging import POINTS_SUFFIX, STAGING, read_staged
@@ -49,27 +56,92 @@ _PART_RE = re.compile(r"^part-(\d{5,})\.parquet$")
 
 
 # -- merging the staged frames -------------------------------------------------------------------------
+def _part_name(index: int) -> str:
+    """A sparse part's path in the dataset."""
+    return f"{SPARSE_DIR}/part-{index:05d}.parquet"
+
+
 def _part_index(name: str) -> int | None:
     m = _PART_RE.match(name)
     return int(m.group(1)) if m else None
 
 
-def _frame_indices(rows: list[ManifestRow]) -> dict[str, int]:
-    """``frame_index`` by sample id: each frame's rank in its sequence, frames in natural order
-    (numbers compared as numbers: ``2`` before ``10``); the cameras of one frame share it."""
-    by_seq: dict[str, set[str]] = defaultdict(set)
-    for r in rows:
-        by_seq[r.sequence].add(r.frame)
-    rank = {
-        (seq, frame): i
-        for seq, frames in by_seq.items()
-        for i, frame in enumerate(sorted(frames, key=_natural))
-    }
-    return {r.id: rank[r.sequence, r.frame] for r in rows}
-
-
 def _natural(text: str) -> tuple:
     return tuple(int(p) if p.isdigit() else p for p in re.split(r"(\d+)", text))
+
+
+def _frame_ranks(sequence: Iterable[str], frame: Iterable[str]) -> dict[tuple[str, str], int]:
+    """``frame_index`` by (sequence, frame): each frame's rank in its sequence, frames in
+    natural order (numbers compared as numbers: ``2`` before ``10``); the cameras of one
+    frame share it."""
+    by_seq: dict[str, set[str]] = defaultdict(set)
+    for seq, name in zip(sequence, frame, strict=True):
+        by_seq[seq].add(name)
+    return {
+        (seq, name): i
+        for seq, names in by_seq.items()
+        for i, name in enumerate(sorted(names, key=_natural))
+    }
+
+
+def _rows_table(rows: list[ManifestRow]):
+    """Rows as an Arrow table of :data:`FULL_SCHEMA` (every optional column, nulls included)."""
+    import pyarrow as pa
+
+    return pa.Table.from_arrays(
+        [pa.array([getattr(r, f.name) for r in rows], type=f.type) for f in FULL_SCHEMA],
+        schema=FULL_SCHEMA,
+    )
+
+
+_OPTIONAL = tuple(OPTIONAL_SCHEMA.names)
+
+
+@dataclasses.dataclass
+class _Staged:
+    """The staging records, in sample-id order, as the few columns the merge decides on (a
+    record's whole row is read again when it is written: nothing per frame is held but these)."""
+
+    folder: Path
+    ids: list[str]
+    sequence: list[str]
+    frame: list[str]
+    rgb_root: list[str | None]
+    optional: list[int]  # bit k: the row fills OPTIONAL_SCHEMA's k-th column
+    points: list[bool]  # the record holds the frame's sparse points
+
+    @classmethod
+    def scan(cls, staging: Path) -> _Staged:
+        """Read every record of ``staging`` once; a record whose sample id is not its file
+        name is refused (a record is untrusted input: it must not stand for another frame)."""
+        found = []
+        if staging.is_dir():
+            for p in staging.rglob("*.rec"):
+                if not p.name.startswith(TMP_PREFIX):
+                    found.append((p.relative_to(staging).as_posix()[: -len(".rec")], p))
+        found.sort()
+        s = cls(staging, [], [], [], [], [], [])
+        sequences: dict[str, str] = {}
+        for fid, p in found:
+            row, points = read_staged(p)
+            if row.id != fid:
+                raise FormatError(
+                    f"{p}: corrupt staging record (it names sample {row.id!r}, not {fid!r}); "
+                    "delete it and rerun"
+                )
+            s.ids.append(fid)
+            s.sequence.append(sequences.setdefault(row.sequence, row.sequence))  # shared
+            s.frame.append(row.frame)
+            s.rgb_root.append(row.rgb_root)
+            s.optional.append(
+                sum(1 << k for k, name in enumerate(_OPTIONAL) if getattr(row, name) is not None)
+            )
+            s.points.append(points is not None)
+        return s
+
+    def read(self, i: int) -> tuple[ManifestRow, tuple | None]:
+        """The ``i``-th record's row and points."""
+        return read_staged(self.folder / f"{self.ids[i]}.rec")
 
 
 def merge_staged(
@@ -80,8 +152,12 @@ def merge_staged(
     ``assignment``: sample id -> split (split files, the tree), else splits by sequence from
     ``fractions``. ``only``: keep only these sample ids (``--overwrite``: the dataset holds
     this run only).
+
+    Memory: the earlier manifest as an Arrow table (when there is one), and per new frame its
+    id, sequence and frame name; rows are read again and written a row group at a time.
     """
     import pyarrow as pa
+    import pyarrow.compute as pc
 
     # Everything written or deleted below is inside the dataset and reached through no link
     # (a ds/sparse that links to another folder is refused, its parts are never touched).
@@ -90,148 +166,234 @@ def merge_staged(
         contained.check(folder, what="folder")
     contained.check(out / MANIFEST_NAME)
     staging = out / STAGING
-    staged_files = (
-        sorted(p for p in staging.rglob("*.rec") if not p.name.startswith(TMP_PREFIX))
-        if staging.is_dir()
-        else []
-    )
+    staged = _Staged.scan(staging)
     manifest_path = out / MANIFEST_NAME
-    old_rows: list[ManifestRow] = []
+    old = _rows_table([])
     old_info: dict = {}
     if manifest_path.is_file():
         table, old_info = read_manifest(manifest_path)
-        old_rows = ManifestRow.from_table(table)
-    dropped = [] if only is None else [r for r in old_rows if r.id not in only]
-    if not staged_files and not dropped:
-        return _counts(old_rows)
+        old = table.select(FULL_SCHEMA.names).cast(FULL_SCHEMA)  # later columns: not kept
+        del table
+    old_ids = old.column("id").to_pylist()
+    dropped = np.zeros(len(old_ids), dtype=bool)  # --overwrite: rows of frames not given
+    if only is not None:
+        dropped = np.array([fid not in only for fid in old_ids], dtype=bool)
+    if not staged.ids and not dropped.any():
+        return _counts(old)
 
-    new_rows: list[ManifestRow] = []
-    # where each frame's points are: read again a part at a time (a build of a million frames
-    # never holds every frame's points)
-    points_of: dict[str, Path] = {}
-    for p in staged_files:
-        row, points = read_staged(p)
-        new_rows.append(row)
-        if points is not None:
-            points_of[row.id] = p
-        del points
-    gone = {r.id for r in new_rows} | {r.id for r in dropped}
-    kept = [r for r in old_rows if r.id not in gone]
-    # What changes in a row (its split, its part and row there, its frame_index), by id.
-    changes: dict[str, dict] = defaultdict(dict)
+    restaged = set(staged.ids)
+    gone = dropped | np.array([fid in restaged for fid in old_ids], dtype=bool)
+    del restaged
+    kept = sorted(np.flatnonzero(~gone).tolist(), key=old_ids.__getitem__)
+    lost = old.filter(pa.array(gone))
+    referenced_old = _values(old, "sparse_parquet")
+    removed_parts = _values(lost, "sparse_parquet")
+    referenced_points = _values(old, "points_parquet")
+    removed_points = _values(lost, "points_parquet")
+    del lost
+    old_seq, old_frame = old.column("sequence").to_pylist(), old.column("frame").to_pylist()
+    old_split = old.column("split").to_pylist()
+    pinned: dict[str, str] = {}
+    for i in kept:  # the earlier build's rows, in id order: the first split wins
+        if old_split[i] is not None:
+            pinned.setdefault(old_seq[i], old_split[i])
 
+    # The new rows: the staged ones the split lists name (all without lists), their splits.
+    new = range(len(staged.ids))
     if assignment is not None:
-        unknown = [r.id for r in new_rows if r.id not in assignment]
+        unknown = [fid for fid in staged.ids if fid not in assignment]
         if unknown:
             log.warning(
                 "%d staged frame(s) are not in the split files and are left out: %s",
                 len(unknown),
                 ", ".join(unknown[:5]),
             )
-        new_rows = [r for r in new_rows if r.id in assignment]
-        for r in new_rows:
-            changes[r.id]["split"] = assignment[r.id]
+        new = [i for i in new if staged.ids[i] in assignment]
+        new_split = [assignment.get(fid) for fid in staged.ids]
     else:
-        pinned: dict[str, str] = {}
-        for r in sorted(kept, key=lambda r: r.id):
-            if r.split is not None:
-                pinned.setdefault(r.sequence, r.split)
         seq_split = assign_splits(
-            {r.sequence for r in new_rows}, fractions, seed=seed, pinned=pinned
+            {staged.sequence[i] for i in new}, fractions, seed=seed, pinned=pinned
         )
-        for r in new_rows:
-            changes[r.id]["split"] = seq_split[r.sequence]
+        new_split = [seq_split.get(seq) for seq in staged.sequence]
 
     sparse_dir = out / SPARSE_DIR
     on_disk = sorted(sparse_dir.glob("part-*.parquet")) if sparse_dir.is_dir() else []
     # Parts no manifest row refers to were written by a finalize that was interrupted before
     # its manifest: drop them, so the resumed build numbers its parts as an uninterrupted one.
-    referenced_old = {r.sparse_parquet for r in old_rows if r.sparse_parquet is not None}
     for p in on_disk:
         if f"{SPARSE_DIR}/{p.name}" not in referenced_old:
             remove_output(out, p)
     on_disk = [p for p in on_disk if p.exists()]
     next_part = 1 + max((i for p in on_disk if (i := _part_index(p.name)) is not None), default=-1)
+    moved: dict[str, tuple[str, int]] = {}  # id -> (sparse part, row) of kept rows that move
     written = []
 
-    def new_part(table: pa.Table, ids: list[str]) -> None:
+    def new_part(table: pa.Table, ids: list[str] | None) -> None:
         nonlocal next_part
-        rel = f"{SPARSE_DIR}/part-{next_part:05d}.parquet"
+        rel = _part_name(next_part)
         next_part += 1
         write_sparse_part(contained.check(out / rel), table)
         written.append(rel)
-        for i, fid in enumerate(ids):
-            changes[fid].update(sparse_parquet=rel, sparse_row=i)
+        for i, fid in enumerate(ids or ()):
+            moved[fid] = (rel, i)
 
     # Old parts that lose rows (overwritten frames) are rewritten with the rows kept.
-    kept_by_part: dict[str, list[ManifestRow]] = defaultdict(list)
-    for r in kept:
-        if r.sparse_parquet is not None:
-            kept_by_part[r.sparse_parquet].append(r)
-    removed_parts = {
-        r.sparse_parquet for r in old_rows if r.id in gone and r.sparse_parquet is not None
-    }
-    for rel in sorted(removed_parts & set(kept_by_part)):
-        rows = sorted(kept_by_part[rel], key=lambda r: r.id)
-        table = read_sparse_part(resolve_in_dataset(out, rel))
-        sub = table.take(pa.array([r.sparse_row for r in rows], type=pa.int64()))
-        if sub.column("id").to_pylist() != [r.id for r in rows]:
-            raise FormatError(f"{rel}: rows do not match the manifest; run 'dataset verify'")
-        new_part(sub, [r.id for r in rows])
-
-    size_of = {r.id: (r.height, r.width) for r in new_rows}
-    with_points = sorted(fid for fid in points_of if fid in size_of)
-    for start in range(0, len(with_points), frames_per_part):
-        ids = with_points[start : start + frames_per_part]
-        points = [read_staged(points_of[i])[1] for i in ids]
-        new_part(sparse_part_table(ids, points, [size_of[i] for i in ids]), ids)
-        del points
-
-    drop_stale_points = _merge_points(
-        out, contained, old_rows, kept, new_rows, gone, changes, frames_per_part
+    old_part, old_row = (
+        old.column("sparse_parquet").to_pylist(),
+        old.column("sparse_row").to_pylist(),
     )
-    rows = sorted(kept + new_rows, key=lambda r: r.id)
-    for fid, i in _frame_indices(rows).items():
-        changes[fid]["frame_index"] = i
-    rows = [_changed(r, changes.get(r.id)) for r in rows]
+    for rel in sorted(removed_parts):
+        rows = [(old_ids[i], old_row[i]) for i in kept if old_part[i] == rel]
+        if not rows:
+            continue
+        table = read_sparse_part(resolve_in_dataset(out, rel))
+        sub = table.take(pa.array([row for _, row in rows], type=pa.int64()))
+        if sub.column("id").to_pylist() != [fid for fid, _ in rows]:
+            raise FormatError(f"{rel}: rows do not match the manifest; run 'dataset verify'")
+        new_part(sub, [fid for fid, _ in rows])
+    del old_part, old_row
+
+    # The new frames' points, in id order, frames_per_part to a part (read a part at a time):
+    # the j-th new frame with points is row j % frames_per_part of part first_new + j // ...
+    first_new = next_part
+    with_points = [i for i in new if staged.points[i]]
+    for start in range(0, len(with_points), frames_per_part):
+        chunk = with_points[start : start + frames_per_part]
+        rows, points = [], []
+        for i in chunk:
+            row, pts = staged.read(i)
+            rows.append(row)
+            points.append(pts)
+        ids = [r.id for r in rows]
+        new_part(sparse_part_table(ids, points, [(r.height, r.width) for r in rows]), None)
+        del rows, points
+        pa.default_memory_pool().release_unused()
+
+    points_of, drop_stale_points = _merge_points(
+        out, contained, old, kept, [staged.ids[i] for i in new], referenced_points,
+        removed_points, frames_per_part,
+    )  # fmt: skip
+
+    # The manifest, a row group at a time: kept rows and new rows merged in id order.
+    order = heapq.merge(
+        ((old_ids[i], False, i) for i in kept), ((staged.ids[i], True, i) for i in new)
+    )
+    ranks = _frame_ranks(
+        [*(old_seq[i] for i in kept), *(staged.sequence[i] for i in new)],
+        [*(old_frame[i] for i in kept), *(staged.frame[i] for i in new)],
+    )
+    filled = {name for k, name in enumerate(_OPTIONAL)
+              if any(staged.optional[i] >> k & 1 for i in new)
+              or pc.any(old.column(name).take(pa.array(kept, pa.int64())).is_valid()).as_py()}  # fmt: skip
+    if points_of:
+        filled |= {"points_parquet", "points_row"}
+    used = {staged.rgb_root[i] for i in new} | _values(
+        old.take(pa.array(kept, pa.int64())), "rgb_root"
+    )
+    used.discard(None)
     merged_info = {**old_info, **info}
     merged_info.pop("schema_version", None)
     # Roots of referenced images (--store reference): the newest path of each name that a
     # row still names.
     roots = {**old_info.get("roots", {}), **info.get("roots", {})}
-    used = {r.rgb_root for r in rows if r.rgb_root is not None}
     merged_info.pop("roots", None)
     if used:
         merged_info["roots"] = {k: v for k, v in sorted(roots.items()) if k in used}
-    write_manifest(manifest_path, ManifestRow.to_table(rows), info=merged_info)
 
-    referenced = {r.sparse_parquet for r in rows if r.sparse_parquet is not None}
+    def rows_of(entries: list[tuple[str, bool, int]]) -> pa.Table:
+        """The manifest rows of ``entries`` (id order), their merged values filled in."""
+        old_at = [i for _, is_new, i in entries if not is_new]
+        new_at = [i for _, is_new, i in entries if is_new]
+        table = pa.concat_tables([
+            old.take(pa.array(old_at, pa.int64())),
+            _rows_table([staged.read(i)[0] for i in new_at]),
+        ])  # fmt: skip
+        rank_old, rank_new = iter(range(len(old_at))), iter(range(len(old_at), table.num_rows))
+        table = table.take(pa.array(
+            [next(rank_new) if is_new else next(rank_old) for _, is_new, _ in entries],
+            pa.int64(),
+        ))  # fmt: skip
+        values = {name: table.column(name).to_pylist() for name in _CHANGING}
+        for k, (fid, is_new, i) in enumerate(entries):
+            if is_new:
+                values["split"][k] = new_split[i]
+                values["sparse_parquet"][k] = values["sparse_row"][k] = None
+                if staged.points[i]:
+                    j = next(nth_with_points)
+                    values["sparse_parquet"][k] = _part_name(first_new + j // frames_per_part)
+                    values["sparse_row"][k] = j % frames_per_part
+                values["points_parquet"][k], values["points_row"][k] = points_of.get(
+                    fid, (None, None)
+                )
+            else:
+                if fid in moved:
+                    values["sparse_parquet"][k], values["sparse_row"][k] = moved[fid]
+                if fid in points_of:
+                    values["points_parquet"][k], values["points_row"][k] = points_of[fid]
+        seq, frame = table.column("sequence").to_pylist(), table.column("frame").to_pylist()
+        values["frame_index"] = [ranks[s, f] for s, f in zip(seq, frame, strict=True)]
+        for name, column in values.items():
+            f = FULL_SCHEMA.field(name)
+            table = table.set_column(
+                table.schema.get_field_index(name), f, pa.array(column, type=f.type)
+            )
+        return table
+
+    nth_with_points = itertools.count()
+    counts = Counter()
+    sequences = set()
+    with ManifestWriter(manifest_path, optional=filled, referenced=bool(used),
+                        info=merged_info) as writer:  # fmt: skip
+        while entries := list(itertools.islice(order, MANIFEST_ROW_GROUP)):
+            table = rows_of(entries)
+            writer.write(table)
+            counts.update(table.column("split").to_pylist())
+            sequences.update(table.column("sequence").unique().to_pylist())
+            del table
+            pa.default_memory_pool().release_unused()  # mimalloc keeps freed pages otherwise
+
+    referenced = set(written) | _kept_parts(manifest_path)
     for p in sorted(sparse_dir.glob("part-*.parquet")) if sparse_dir.is_dir() else []:
         if f"{SPARSE_DIR}/{p.name}" not in referenced:
             remove_output(out, p)
-    drop_stale_points(rows)
+    drop_stale_points(manifest_path)
     shutil.rmtree(staging, ignore_errors=True)  # a real folder (checked): links in it not followed
-    result = _counts(rows)
-    result["new_parts"] = len(written)
-    return result
+    return {
+        "samples": writer.rows,
+        "sequences": len(sequences),
+        "splits": {k: counts[k] for k in sorted(counts, key=str)},
+        "new_parts": len(written),
+    }
 
 
-def _merge_points(out, contained, old_rows, kept, new_rows, gone, changes, frames_per_part):
+#: Columns the merge decides (``frame_index`` too, from every row's sequence and frame).
+_CHANGING = ("split", "sparse_parquet", "sparse_row", "points_parquet", "points_row")
+
+
+def _kept_parts(manifest: Path, column: str = "sparse_parquet") -> set[str]:
+    """The parts the manifest just written refers to (one column read back)."""
+    import pyarrow.parquet as pq
+
+    if column not in pq.read_schema(manifest).names:
+        return set()
+    return _values(pq.read_table(manifest, columns=[column]), column)
+
+
+def _merge_points(out, contained, old, kept, new_ids, referenced_old, removed, frames_per_part):
     """The points parts (``--store-points``), as the sparse parts above: parts of an
-    interrupted finalize dropped, old parts that lose rows rewritten with the rows kept, the
-    staged points of the new frames written in new parts (``points_parquet`` /
-    ``points_row`` in ``changes``). Returns the clean-up to run after the manifest: delete
-    the parts no row refers to."""
-    import numpy as np
+    interrupted finalize dropped, old parts that lose rows rewritten with the rows kept (in
+    ``old``'s rows ``kept``), the staged points of the frames ``new_ids`` written in new
+    parts. Returns (part, row) by sample id of the rows written, and the clean-up to run
+    after the manifest: delete the parts it no longer refers to."""
     import pyarrow as pa
 
     folder = out / POINTS_DIR
     contained.check(folder, what="folder")
-    staged = {r.id: out / STAGING / f"{r.id}{POINTS_SUFFIX}" for r in new_rows}
+    staged = {fid: out / STAGING / f"{fid}{POINTS_SUFFIX}" for fid in new_ids}
     staged = {fid: p for fid, p in staged.items() if p.is_file()}
-    referenced_old = {r.points_parquet for r in old_rows if r.points_parquet is not None}
+    where: dict[str, tuple[str, int]] = {}
     if not staged and not referenced_old and not folder.is_dir():
-        return lambda rows: None
+        return where, lambda manifest: None
     on_disk = sorted(folder.glob("part-*.parquet")) if folder.is_dir() else []
     for p in on_disk:
         if f"{POINTS_DIR}/{p.name}" not in referenced_old:
@@ -245,52 +407,53 @@ def _merge_points(out, contained, old_rows, kept, new_rows, gone, changes, frame
         next_part += 1
         write_points_part(contained.check(out / rel), table)
         for i, fid in enumerate(ids):
-            changes[fid].update(points_parquet=rel, points_row=i)
+            where[fid] = (rel, i)
 
-    kept_by_part = defaultdict(list)
-    for r in kept:
-        if r.points_parquet is not None:
-            kept_by_part[r.points_parquet].append(r)
-    removed = {r.points_parquet for r in old_rows if r.id in gone and r.points_parquet}
-    for rel in sorted(removed & set(kept_by_part)):
-        rows = sorted(kept_by_part[rel], key=lambda r: r.id)
+    ids_old = old.column("id").to_pylist()
+    part_old, row_old = (
+        old.column("points_parquet").to_pylist(),
+        old.column("points_row").to_pylist(),
+    )
+    for rel in sorted(removed):
+        rows = [(ids_old[i], row_old[i]) for i in kept if part_old[i] == rel]
+        if not rows:
+            continue
         table = read_points_part(resolve_in_dataset(out, rel))
-        sub = table.take(pa.array([r.points_row for r in rows], type=pa.int64()))
-        if sub.column("id").to_pylist() != [r.id for r in rows]:
+        sub = table.take(pa.array([row for _, row in rows], type=pa.int64()))
+        if sub.column("id").to_pylist() != [fid for fid, _ in rows]:
             raise FormatError(f"{rel}: rows do not match the manifest; run 'dataset verify'")
-        new_part(sub, [r.id for r in rows])
-    size_of = {r.id: (r.height, r.width) for r in new_rows}
+        new_part(sub, [fid for fid, _ in rows])
     ids = sorted(staged)
     per_part = min(frames_per_part, POINTS_PER_PART)
     for start in range(0, len(ids), per_part):
         chunk = ids[start : start + per_part]
-        clouds = []
+        clouds, sizes = [], []
         for fid in chunk:
             arr = np.load(staged[fid], allow_pickle=False)
             ring = arr[:, 3].astype(np.int16)
             clouds.append((arr[:, :3], None if (ring < 0).all() and len(ring) else ring))
-        new_part(points_part_table(chunk, clouds, [size_of[i] for i in chunk]), chunk)
+            row, _ = read_staged(out / STAGING / f"{fid}.rec")
+            sizes.append((row.height, row.width))
+        new_part(points_part_table(chunk, clouds, sizes), chunk)
 
-    def clean(rows) -> None:
-        referenced = {r.points_parquet for r in rows if r.points_parquet is not None}
+    def clean(manifest: Path) -> None:
+        referenced = _kept_parts(manifest, "points_parquet")
         for p in sorted(folder.glob("part-*.parquet")) if folder.is_dir() else []:
             if f"{POINTS_DIR}/{p.name}" not in referenced:
                 remove_output(out, p)
 
-    return clean
+    return where, clean
 
 
-def _changed(row: ManifestRow, changes: Mapping | None) -> ManifestRow:
-    """``row`` with ``changes`` (fields that hold other values now), itself when none does."""
-    if changes and any(getattr(row, k) != v for k, v in changes.items()):
-        return dataclasses.replace(row, **changes)
-    return row
+def _values(table, column: str) -> set[str]:
+    """The distinct non-empty values of a string column."""
+    return {v for v in table.column(column).unique().to_pylist() if v is not None}
 
 
-def _counts(rows: list[ManifestRow]) -> dict:
-    splits = Counter(r.split for r in rows)
+def _counts(table) -> dict:
+    splits = Counter(table.column("split").to_pylist())
     return {
-        "samples": len(rows),
-        "sequences": len({r.sequence for r in rows}),
+        "samples": table.num_rows,
+        "sequences": len(table.column("sequence").unique()),
         "splits": {k: splits[k] for k in sorted(splits, key=str)},
     }

@@ -29,8 +29,8 @@ from ...io.dataset import (
     check_relative_path,
     read_manifest,
     resolve_in_dataset,
-    write_manifest,
 )
+from ...io.manifest_writer import write_manifest
 from ...io.provenance import RECORD_DIR, RUN_FILE
 from ..batch import Batch, RunSummary
 from ..core import BatchJob, FrameStats, FrameTask, run_job

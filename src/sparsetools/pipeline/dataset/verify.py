@@ -22,12 +22,12 @@ from ...io.dataset import (
     brief_error,
     bytes_sha256,
     points_sha256,
-    read_manifest,
     resolve_in_dataset,
 )
 from ...io.dataset_parts import part_rows, read_sparse_part
 from ...io.depth_files import decode_confidence_bytes, decode_depth_bytes
 from ...io.frame_index import key_hash
+from ...io.manifest_stream import ManifestBatches
 from ...validate import check_int_range
 from .references import decode_rgb as _decode_rgb
 from .references import verify_reference as _verify_reference
@@ -233,7 +233,7 @@ def _valid_pixels(png: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return at.astype(np.int32 if flat.size < 2**31 else np.int64), counts
 
 
-#: Manifest rows verified per chunk (memory: one chunk's row objects at a time).
+#: Manifest rows read and verified per chunk (memory: one chunk's rows at a time).
 _VERIFY_CHUNK = 1024
 
 
@@ -261,8 +261,16 @@ def verify_dataset(
     Returns
     -------
     VerifyReport
-        Its ``problems`` empty when the dataset is intact. A manifest that cannot be read
-        at all raises :class:`FormatError`.
+        Its ``problems`` empty when the dataset is intact.
+
+    Raises
+    ------
+    FormatError
+        A manifest that cannot be read or that :func:`~sparsetools.io.dataset.read_manifest`
+        would refuse. The manifest is read a chunk of rows at a time
+        (:class:`~sparsetools.io.manifest_stream.ManifestBatches`): a refusal found in a later chunk,
+        or duplicate sample ids (known only at the end), raise after the earlier rows' files
+        were checked.
     """
     from concurrent.futures import ThreadPoolExecutor
 
@@ -270,12 +278,13 @@ def verify_dataset(
 
     threads = check_int_range(threads, "threads", low=1)
     root = Path(path)
-    table, info = read_manifest(root / MANIFEST_NAME)
+    manifest = ManifestBatches(root / MANIFEST_NAME, batch_rows=_VERIFY_CHUNK)
+    info = manifest.info
     where = sample_roots(info, roots)
     recorded = sample_roots(info, None)
     problems: list[str] = []
     warnings: list[str] = []
-    # The manifest is walked in chunks and each row's result folded at once: what is kept per
+    # The manifest is read in chunks and each row's result folded at once: what is kept per
     # sample is its id and sequence, and only for samples with a Parquet part the row and the
     # valid pixels of its PNG (to compare the two), not every row object and decoded map.
     ids = array("q")  # key hashes of the samples, for the journal (8 bytes each)
@@ -283,7 +292,7 @@ def verify_dataset(
     ref_status: Counter = Counter()
     # a part is compared as soon as its last sample is seen (a build writes a part's samples
     # together): only the parts in progress hold rows and valid pixels
-    remaining = _rows_per_part(table)
+    remaining = _rows_per_part(manifest)
     by_part: dict[str, list[ManifestRow]] = defaultdict(list)
     part_problems: dict[str, list[str]] = {}
     seq_splits: dict[str, set] = defaultdict(set)
@@ -299,8 +308,8 @@ def verify_dataset(
 
     pool = ThreadPoolExecutor(max_workers=threads) if threads > 1 else None
     try:
-        for start in range(0, table.num_rows, _VERIFY_CHUNK):
-            rows = ManifestRow.from_table(table.slice(start, _VERIFY_CHUNK))
+        for chunk in manifest:
+            rows = ManifestRow.from_table(chunk)
             results = pool.map(one, rows) if pool is not None else map(one, rows)
             for r, (probs, png, warns, status) in zip(rows, results, strict=True):
                 problems.extend(probs)
@@ -353,7 +362,7 @@ def verify_dataset(
     return VerifyReport(
         dataset=str(root),
         schema_version=info["schema_version"],
-        samples=table.num_rows,
+        samples=manifest.num_rows,
         inputs_changed=len(changed),
         problems=tuple(problems),
         warnings=tuple(warnings),
@@ -363,16 +372,28 @@ def verify_dataset(
     )
 
 
-def _rows_per_part(table) -> Counter:
-    """Manifest rows per ``sparse_parquet`` part (rows without one are not counted)."""
+def _rows_per_part(manifest: ManifestBatches) -> Counter:
+    """Manifest rows per ``sparse_parquet`` part (rows without one are not counted), from
+    that column alone, a row group at a time. A column that cannot be read counts nothing
+    (every part is then compared at the end): reading the manifest refuses it."""
+    import pyarrow as pa
     import pyarrow.compute as pc
+    import pyarrow.parquet as pq
 
     counts = Counter()
-    if "sparse_parquet" not in table.column_names:
-        return counts
-    for item in pc.value_counts(table.column("sparse_parquet")).to_pylist():
-        if item["values"] is not None:
-            counts[item["values"]] = item["counts"]
+    try:
+        with pq.ParquetFile(manifest.path) as pf:
+            if "sparse_parquet" not in pf.schema_arrow.names:
+                return counts
+            for batch in pf.iter_batches(
+                batch_size=manifest.batch_rows, columns=["sparse_parquet"]
+            ):
+                column = batch.column(0).cast(pa.string())
+                for item in pc.value_counts(column).to_pylist():
+                    if item["values"] is not None:
+                        counts[item["values"]] += item["counts"]
+    except (pa.ArrowException, OSError):
+        return Counter()
     return counts
 
 
