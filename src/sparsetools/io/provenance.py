@@ -490,7 +490,8 @@ def recorded_outputs(folder: str | os.PathLike, role: str | None = None) -> dict
 
     ``role`` None: the folder's only role (None when it records several, so the caller
     decides). A record whose task covers several frames (``underwater`` segments) names its
-    outputs ``<role>@<frame key>``.
+    outputs ``<role>@<frame key>``. The journal is read a line at a time and only each key's
+    outputs are held (the last line of a key wins), not its records.
     """
     try:
         check_record_dir(folder)
@@ -498,11 +499,13 @@ def recorded_outputs(folder: str | os.PathLike, role: str | None = None) -> dict
         return None  # a link in place of the record: no record to trust
     if not (_dir(folder) / RUN_FILE).is_file():
         return None
+    outputs: dict[str, tuple[tuple[str, str], ...]] = {}
     try:
-        records = read_frame_records(folder)
-    except FormatError:
-        return None
-    roles = {r.partition("@")[0] for rec in records.values() for r in rec.outputs}
+        for rec in iter_frame_records(folder):
+            outputs[rec.key] = tuple(rec.outputs.items())
+    except OSError:
+        return None  # an unreadable journal: no record to trust (as a damaged one)
+    roles = {r.partition("@")[0] for items in outputs.values() for r, _ in items}
     if role is None:
         if len(roles) != 1:
             return None
@@ -510,8 +513,8 @@ def recorded_outputs(folder: str | os.PathLike, role: str | None = None) -> dict
     from .containment import contained_record_path
 
     out = {}
-    for k, rec in records.items():
-        for r, rel in rec.outputs.items():
+    for k, items in outputs.items():
+        for r, rel in items:
             base, _, key = r.partition("@")
             path = contained_record_path(folder, rel)  # never a file outside the folder
             if base == role and path is not None:

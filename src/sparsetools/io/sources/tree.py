@@ -258,13 +258,17 @@ def index_tree(
         raise FormatError(f"{option}: {root}: no such file or folder")
     recorded = recorded_outputs(root, role)
     if recorded:
-        files = {}
-        for k in sorted(recorded, key=FrameKey.parse):
-            p = recorded[k]
-            if p.is_file() and _suffix_ok(p.name, suffixes):
-                files[FrameKey.parse(k)] = p
-        if files:
-            return FileIndex(root, files, layout="sparsetools")
+        entries, folders = [], {}
+        while recorded:
+            k, p = recorded.popitem()
+            if _suffix_ok(p.name, suffixes) and p.is_file():
+                key = FrameKey.parse(k)
+                folder = str(p.parent)
+                entries.append(
+                    (key.sequence, key.frame, folders.setdefault(folder, folder), p.name)
+                )
+        if entries:
+            return FileIndex(root, FileMap(entries), layout="sparsetools")
     rows: list[tuple[str, str, str, str]] = []
     for dirpath, dirnames, filenames in walk_once(root):
         dirnames[:] = sorted(d for d in dirnames if not d.startswith(".") and d != RECORD_DIR)

@@ -42,6 +42,7 @@ from .staging import (
     STAGING,
     DatasetFrameInput,
     DatasetFrameStats,
+    InputFolders,
     sample_files,
     stage_frame,
 )
@@ -269,8 +270,8 @@ def find_build_inputs(
         unmatched["without_tree_split"] = sum(1 for k in keys if k not in inputs.splits)
         keys = [k for k in keys if k in inputs.splits]
         split_of = {k: inputs.splits[k] for k in keys}
-    given = {"rgb": rgb, "sparse": sparse, "gt": gt, "confidence": confidence, "calib": calib}
-    frames = [_frame_input(k, sequence[k], split_of.get(k), inputs, given) for k in keys]
+    folders = InputFolders.of(rgb=rgb, sparse=sparse, gt=gt, confidence=confidence, calib=calib)
+    frames = [_frame_input(k, sequence[k], split_of.get(k), inputs, folders) for k in keys]
     roots = tuple(Path(p) for p in (rgb, sparse, gt, confidence) if p is not None)
     rgb_root = Path(rgb).absolute()
     rgb_root = rgb_root if rgb_root.is_dir() else rgb_root.parent
@@ -279,50 +280,32 @@ def find_build_inputs(
 
 
 def _frame_input(
-    k: FrameKey, seq: str, split: str | None, inputs: _Inputs, given: dict
+    k: FrameKey, seq: str, split: str | None, inputs: _Inputs, folders: InputFolders
 ) -> DatasetFrameInput:
-    """One frame's typed input record: its files (or points) and where each came from."""
-    rgb_file = inputs.rgb[k]
-    desc = {"rgb": _rel_desc(rgb_file, given["rgb"])}
+    """One frame's typed input record: its files (or points) and what they were given as."""
     sparse_file = sparse_points = sparse_table = None
     if inputs.sparse_is_table:
         sparse_points = inputs.sparse[k]
         sparse_table = str(inputs.sparse_path)
-        desc["sparse"] = inputs.sparse_path.name
     else:
         sparse_file = str(inputs.sparse[k])
-        desc["sparse"] = _rel_desc(inputs.sparse[k], given["sparse"])
-    extra = {}
-    for kind, found in inputs.extra.items():
-        extra[kind] = str(found[k])
-        desc[kind] = _rel_desc(found[k], given[kind])
-    cal = inputs.calib.get(k)
-    if cal is not None:
-        desc["calib"] = _rel_desc(Path(cal), given["calib"]) if given["calib"] else Path(cal).name
+    extra = {kind: str(found[k]) for kind, found in inputs.extra.items()}
     return DatasetFrameInput(
         id=str(k),
         sequence=seq,
         frame=k.frame,
-        rgb=str(rgb_file),
+        rgb=str(inputs.rgb[k]),
         sparse=sparse_file,
         sparse_points=sparse_points,
         sparse_table=sparse_table,
         gt=extra.get("gt"),
         confidence=extra.get("confidence"),
-        calib=cal,
+        calib=inputs.calib.get(k),
         timestamp=inputs.times.get(k),
         pose=inputs.poses.get(k),
         split=split,
-        inputs_desc=tuple(sorted(desc.items())),
+        folders=folders,
     )
-
-
-def _rel_desc(path: Path, folder) -> str:
-    folder = Path(folder)
-    try:
-        return Path(path).relative_to(folder).as_posix() if folder.is_dir() else folder.name
-    except ValueError:
-        return Path(path).name
 
 
 # -- the job -----------------------------------------------------------------------------------------

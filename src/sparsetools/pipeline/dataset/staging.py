@@ -38,6 +38,7 @@ __all__ = [
     "STAGING",
     "DatasetFrameInput",
     "DatasetFrameStats",
+    "InputFolders",
     "camera_points",
     "read_record",
     "read_staged",
@@ -323,7 +324,60 @@ def _npy_bytes(arr: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
+class InputFolders:
+    """The folders (or files) a build's inputs were given as, which each frame's
+    ``generation_params["inputs"]`` names its files relative to; one object shared by the
+    frames of a build (a frame holds a reference, not its own strings).
+
+    Attributes
+    ----------
+    rgb, sparse, gt, confidence, calib : str, optional
+        As given (``--rgb`` ...).
+    dirs : frozenset of str
+        The kinds given as a folder (looked at once, when the inputs are found).
+    """
+
+    rgb: str | None = None
+    sparse: str | None = None
+    gt: str | None = None
+    confidence: str | None = None
+    calib: str | None = None
+    dirs: frozenset[str] = frozenset()
+
+    @classmethod
+    def of(cls, **given) -> InputFolders:
+        paths = {k: None if v is None else os.fspath(v) for k, v in given.items()}
+        dirs = frozenset(k for k, v in paths.items() if v is not None and os.path.isdir(v))
+        return cls(**paths, dirs=dirs)
+
+    def relative(self, path: str, kind: str) -> str:
+        """``path`` relative to the folder of ``kind`` (POSIX); the name of what was given
+        when it is a file, the file's own name when it is not inside."""
+        folder = getattr(self, kind)
+        if kind not in self.dirs:
+            return Path(folder).name
+        try:
+            return Path(path).relative_to(folder).as_posix()
+        except ValueError:
+            return Path(path).name
+
+    def describe(self, x: DatasetFrameInput) -> tuple[tuple[str, str], ...]:
+        """Where each input of frame ``x`` came from: (kind, relative path), sorted."""
+        desc = {"rgb": self.relative(x.rgb, "rgb")}
+        if x.sparse_table is not None:
+            desc["sparse"] = Path(x.sparse_table).name
+        elif x.sparse is not None:
+            desc["sparse"] = self.relative(x.sparse, "sparse")
+        for kind in ("gt", "confidence"):
+            if getattr(x, kind) is not None:
+                desc[kind] = self.relative(getattr(x, kind), kind)
+        if x.calib is not None:
+            desc["calib"] = self.relative(x.calib, "calib") if self.calib else Path(x.calib).name
+        return tuple(sorted(desc.items()))
+
+
+@dataclass(frozen=True, slots=True)
 class DatasetFrameInput:
     """One frame of a build: where its files are and what the manifest row will say.
 
@@ -342,8 +396,9 @@ class DatasetFrameInput:
     split : str, optional
         The split the inputs give the frame (a split file listing it, or the tree it is in);
         None: assigned by sequence when the frames are merged.
-    inputs_desc : tuple of (kind, relative path)
-        Where each input came from, for ``generation_params``.
+    folders : InputFolders, optional
+        What the inputs were given as: ``inputs_desc``, where each input came from (for
+        ``generation_params``), is made from it when the frame is staged.
     sample_params : tuple of (name, value)
         What this frame's generation did that differs per frame (a nuScenes sample's radar
         sweeps actually merged), stored in ``generation_params`` under ``"sample"``; the
@@ -375,7 +430,7 @@ class DatasetFrameInput:
     timestamp: float | None = None
     pose: tuple[float, ...] | None = None
     split: str | None = None
-    inputs_desc: tuple[tuple[str, str], ...] = ()
+    folders: InputFolders | None = None
     sample_params: tuple[tuple[str, object], ...] = ()
     # -- cameras of a rig and geometry (one block, keep it last)
     camera: str | None = None
@@ -384,6 +439,11 @@ class DatasetFrameInput:
     T_world_ego: tuple[float, ...] | None = None
     cloud: str | None = None
     sweeps: tuple = ()
+
+    @property
+    def inputs_desc(self) -> tuple[tuple[str, str], ...]:
+        """Where each input came from: (kind, path relative to what was given), sorted."""
+        return () if self.folders is None else self.folders.describe(self)
 
     @property
     def sources(self) -> tuple[Path, ...]:
