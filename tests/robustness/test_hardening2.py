@@ -288,17 +288,18 @@ def test_lowlight_variants_are_bounded(tmp_path):
 
 
 def test_full_disk_is_named(tmp_path, monkeypatch):
-    import pathlib
+    from sparsetools.io.atomic import TMP_PREFIX
 
     f = good_frame(tmp_path / "in")
-    real = pathlib.Path.write_bytes
+    real = os.write
 
-    def full(self, data):
-        if self.suffix == ".png":
+    def full(fd, data):  # the disk fills while a PNG output is written
+        name = os.readlink(f"/proc/self/fd/{fd}")
+        if TMP_PREFIX in name and name.endswith(".png"):
             raise OSError(errno.ENOSPC, "No space left on device")
-        return real(self, data)
+        return real(fd, data)
 
-    monkeypatch.setattr(pathlib.Path, "write_bytes", full)
+    monkeypatch.setattr(os, "write", full)
     r = invoke(["project", f["cloud"], "--calib", f["calib"], "--image", f["image"], "-o",
                 tmp_path / "out"])  # fmt: skip
     line = assert_one_error_line(r, "no space left on device while writing")

@@ -7,7 +7,9 @@ A reader never sees a half-written file and an interrupted run leaves no partial
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import errno
+import hashlib
 import itertools
 import os
 from collections.abc import Iterator
@@ -15,9 +17,33 @@ from pathlib import Path
 
 from ..errors import OutputError
 
-__all__ = ["TMP_PREFIX", "atomic_path", "atomic_write_bytes", "remove_stale_temporaries"]
+__all__ = [
+    "TMP_PREFIX",
+    "atomic_path",
+    "atomic_write_bytes",
+    "recording_writes",
+    "remove_stale_temporaries",
+]
 
 TMP_PREFIX = ".tmp-sparsetools-"
+
+#: Where :func:`atomic_write_bytes` notes what it wrote, inside :func:`recording_writes`.
+_written: contextvars.ContextVar[dict | None] = contextvars.ContextVar("written", default=None)
+
+
+@contextlib.contextmanager
+def recording_writes() -> Iterator[dict[str, tuple[int, str]]]:
+    """Within the block, :func:`atomic_write_bytes` notes each file it writes: path (as
+    given, ``os.fspath``) -> (size in bytes, BLAKE2b-128 hex digest of the bytes written).
+
+    The frame runner takes an output's identity from here instead of reading the file back
+    (``provenance.output_identity`` digests the same way): one ``stat`` instead of an
+    ``open`` and a read of every byte."""
+    token = _written.set({})
+    try:
+        yield _written.get()
+    finally:
+        _written.reset(token)
 
 
 @contextlib.contextmanager
@@ -103,15 +129,20 @@ def _open_temporary(parent: Path, suffix: str) -> tuple[str, int]:
     raise OutputError(f"cannot create a temporary file in {parent}")  # pragma: no cover
 
 
-def atomic_write_bytes(path: str | os.PathLike, data: bytes | memoryview) -> None:
+def atomic_write_bytes(
+    path: str | os.PathLike, data: bytes | memoryview, *, overwrite: bool = True
+) -> None:
     """Write ``data`` to ``path`` atomically (temporary file in the same folder, then rename).
 
     The same guarantees as :func:`atomic_path` (and the same one-line errors for a full disk
-    or a read-only folder), with the temporary file written through the descriptor that
+    or a read-only folder; ``overwrite`` False: an existing ``path`` is refused before
+    anything is written), with the temporary file written through the descriptor that
     created it: one ``open`` per output instead of two, which matters for writers of many
-    small files (``dataset build`` stores four per frame).
+    small files (``dataset build`` stores four per frame, ``project`` two).
     """
     path = Path(path)
+    if not overwrite and path.exists():
+        raise OutputError(f"{path} exists (use --overwrite to replace it)")
     if not len(data) and not _allow_empty(path):
         raise OutputError(f"writing {path} produced no data")
     name, fd = _open_temporary(path.parent, path.suffix)
@@ -123,6 +154,10 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes | memoryview) -> Non
             os.close(fd)
             fd = -1
             os.replace(name, path)
+            written = _written.get()
+            if written is not None:
+                digest = hashlib.blake2b(memoryview(data).cast("B"), digest_size=16).hexdigest()
+                written[os.fspath(path)] = (len(memoryview(data).cast("B")), digest)
         except OSError as exc:
             if exc.errno in (errno.ENOSPC, errno.EDQUOT):
                 raise OutputError(f"no space left on device while writing {path}") from exc

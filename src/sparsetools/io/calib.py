@@ -21,7 +21,7 @@ import numpy as np
 
 from ..calibration import Calibration
 from ..errors import CalibrationError, FormatError
-from .atomic import atomic_path
+from .atomic import atomic_write_bytes
 
 __all__ = [
     "PRINCIPAL_POINT_MARGIN",
@@ -358,8 +358,7 @@ def write_json_calib(
     """Write ``calib`` as plain JSON (atomically); ``extra`` keys are stored alongside."""
     d = calib.to_dict()
     d.update(extra)
-    with atomic_path(path, overwrite=overwrite) as tmp:
-        tmp.write_text(json.dumps(d, indent=1) + "\n", encoding="utf-8")
+    atomic_write_bytes(path, (json.dumps(d, indent=1) + "\n").encode("utf-8"), overwrite=overwrite)
 
 
 def write_kitti_object_calib(
@@ -378,8 +377,7 @@ def write_kitti_object_calib(
     lines = [f"P{i}: {fmt(P)}" for i in range(4)]
     lines.append(f"R0_rect: {fmt(np.eye(3))}")
     lines.append(f"Tr_velo_to_cam: {fmt(calib.T_cam_from_sensor[:3])}")
-    with atomic_path(path, overwrite=overwrite) as tmp:
-        tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    atomic_write_bytes(path, ("\n".join(lines) + "\n").encode("utf-8"), overwrite=overwrite)
 
 
 def load_calibration(

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FormatError, ParameterError
-from .atomic import atomic_path
+from .atomic import atomic_write_bytes
 
 __all__ = [
     "DEPTH_SCALE",
@@ -274,8 +274,7 @@ def write_image(path: str | os.PathLike, rgb: np.ndarray, *, overwrite: bool = T
     ok, buf = cv2.imencode(ext, np.ascontiguousarray(rgb[:, :, ::-1]))
     if not ok:
         raise FormatError(f"{path}: OpenCV cannot encode '{ext}'")
-    with atomic_path(path, overwrite=overwrite) as tmp:
-        tmp.write_bytes(buf.tobytes())
+    atomic_write_bytes(path, buf, overwrite=overwrite)
 
 
 def encode_depth_png(depth: np.ndarray) -> tuple[bytes, int]:
@@ -325,8 +324,7 @@ def write_depth_png(path: str | os.PathLike, depth: np.ndarray, *, overwrite: bo
     data, clipped = encode_depth_png(depth)
     if clipped:
         log.warning("%s: %d pixel(s) clipped to the uint16 range (depth >= 256 m)", path, clipped)
-    with atomic_path(path, overwrite=overwrite) as tmp:
-        tmp.write_bytes(data)
+    atomic_write_bytes(path, data, overwrite=overwrite)
     return clipped
 
 

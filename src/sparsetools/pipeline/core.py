@@ -35,6 +35,7 @@ import functools
 import itertools
 import logging
 import os
+import stat
 import time
 import traceback
 from array import array
@@ -46,9 +47,9 @@ from typing import Any, ClassVar, Generic, TypeVar
 import numpy as np
 
 from ..errors import FrameError, OutputError, ParameterError, SparsetoolsError
-from ..io.atomic import remove_stale_temporaries
+from ..io.atomic import recording_writes, remove_stale_temporaries
 from ..io.frame_index import key_hash
-from ..io.provenance import check_record_dir, output_identity
+from ..io.provenance import OutputIdentity, check_record_dir, output_identity
 from .batch import Batch, FrameResult, ResultLog, RunSummary
 from .provenance import OutputFolder, option_names, settings_dict
 
@@ -265,12 +266,13 @@ class _Guarded:
 
     def __call__(self, task: FrameTask) -> FrameResult:
         try:
-            stats = self.fn(task) or {}
+            with recording_writes() as written:
+                stats = self.fn(task) or {}
             if isinstance(stats, FrameStats):
                 stats = stats.to_record()
-            # what was written, read where it was written (in parallel, before the parent
+            # what was written, taken where it was written (in parallel, before the parent
             # records it): a later truncation or edit of an output is then noticed
-            ids = {role: output_identity(p) for role, p in task.outputs.items()}
+            ids = {role: _identity(p, written) for role, p in task.outputs.items()}
             return FrameResult(task.frame_id, True, stats,
                                output_ids={r: i for r, i in ids.items() if i is not None})  # fmt: skip
         except SparsetoolsError as exc:
@@ -284,6 +286,20 @@ class _Guarded:
             detail = traceback.format_exc() if self.debug else ""
             msg = " ".join(f"{type(exc).__name__}: {exc}".split())
             return FrameResult(task.frame_id, False, error=f"internal error: {msg}", detail=detail)
+
+
+def _identity(path: Path, written: Mapping[str, tuple[int, str]]) -> OutputIdentity | None:
+    """An output's identity: from the bytes :func:`atomic_write_bytes` wrote when it wrote
+    the file (and the file is still a regular file of that size), else read back."""
+    noted = written.get(os.fspath(path))
+    if noted is not None:
+        try:
+            st = os.lstat(path)
+        except OSError:
+            return None
+        if stat.S_ISREG(st.st_mode) and st.st_size == noted[0]:
+            return OutputIdentity(int(st.st_size), int(st.st_mtime_ns), noted[1])
+    return output_identity(path)
 
 
 #: Tasks planned (their records read, their inputs' identities taken) at a time.
