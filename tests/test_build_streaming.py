@@ -189,9 +189,13 @@ def test_merge_memory_grows_by_well_under_a_kilobyte_per_frame(tmp_path, monkeyp
     assert per_frame < 1000, f"{per_frame:.0f} bytes per frame"
 
 
-def test_rows_table_is_the_full_schema():
-    t = merge._rows_table([])
-    assert t.schema.equals(FULL_SCHEMA) and t.num_rows == 0
+def test_rows_as_a_table_of_every_column_is_the_full_schema():
+    assert ManifestRow.to_table([], every_column=True).schema.equals(FULL_SCHEMA)
+    row = ManifestRow.from_dict({"id": "s/0", "sequence": "s", "frame": "0", "width": 4,
+                                 "height": 3, "rgb_path": "rgb/s/0.png", "n_sparse": 0,
+                                 "density": 0.0, "rgb_sha256": "0" * 64})  # fmt: skip
+    assert ManifestRow.to_table([row], every_column=True).schema.equals(FULL_SCHEMA)
+    assert "camera" not in ManifestRow.to_table([row]).column_names  # only what a row fills
 
 
 def test_each_frame_names_its_inputs_relative_to_what_was_given(tmp_path):
@@ -235,3 +239,49 @@ def test_project_records_the_identity_of_what_it_wrote(tmp_path):
         assert rec.output_ids[role] == output_identity(out / rel)
     again = invoke(args)
     assert again.exit_code == 0 and "skipped existing  1" in again.output
+
+
+def test_parts_that_lose_rows_keep_every_other_rows_points(tmp_path, monkeypatch):
+    """Restaging some frames rewrites the sparse and points parts they were in with the
+    other rows (`_kept_rows`): every row still reads the points it was staged with, and no
+    part is left that no row refers to."""
+    from sparsetools.io.dataset_reader import DatasetReader
+    from sparsetools.pipeline.dataset.staging import POINTS_SUFFIX
+
+    monkeypatch.setattr(merge, "POINTS_PER_PART", 2)
+    ds = tmp_path / "ds"
+    rng = np.random.default_rng(3)
+    truth = {}
+
+    def stage(n: int, which: range, offset: float) -> None:
+        _stage(ds, n)  # the rows and sparse points (seeded: the same for a frame each time)
+        for i in range(n):
+            fid = f"seq{i % 17:02d}/{i:07d}"
+            rec = ds / STAGING / f"{fid}.rec"
+            if i not in which:
+                rec.unlink()
+                continue
+            cloud = np.column_stack([rng.uniform(1, 9, (5, 3)) + offset, np.arange(5)])
+            np.save(ds / STAGING / f"{fid}{POINTS_SUFFIX}", cloud)
+            truth[fid] = cloud
+
+    def do_merge() -> None:
+        merge.merge_staged(ds, fractions={"train": 1.0}, seed=0, assignment=None, info={},
+                           frames_per_part=3)  # fmt: skip
+
+    stage(7, range(7), 0.0)
+    do_merge()
+    sparse_before = {fid: DatasetReader(ds).sparse_points(fid) for fid in truth}
+    stage(7, range(2, 4), 100.0)  # two frames rebuilt: their parts lose a row each
+    do_merge()
+    reader = DatasetReader(ds)
+    assert len(reader) == 7
+    for fid, cloud in truth.items():
+        xyz, ring = reader.points(fid)
+        assert np.array_equal(xyz, cloud[:, :3]) and np.array_equal(ring, cloud[:, 3])
+        for a, b in zip(reader.sparse_points(fid), sparse_before[fid], strict=True):
+            assert np.array_equal(a, b)
+    rows = [reader.row(i) for i in range(len(reader))]
+    for kind, column in (("sparse", "sparse_parquet"), ("points", "points_parquet")):
+        on_disk = {f"{kind}/{p.name}" for p in (ds / kind).glob("part-*.parquet")}
+        assert on_disk == {getattr(r, column) for r in rows}

@@ -148,7 +148,7 @@ def atomic_write_bytes(
     name, fd = _open_temporary(path.parent, path.suffix)
     try:
         try:
-            view = memoryview(data).cast("B")
+            whole = view = memoryview(data).cast("B")
             while view:
                 view = view[os.write(fd, view) :]
             os.close(fd)
@@ -156,8 +156,8 @@ def atomic_write_bytes(
             os.replace(name, path)
             written = _written.get()
             if written is not None:
-                digest = hashlib.blake2b(memoryview(data).cast("B"), digest_size=16).hexdigest()
-                written[os.fspath(path)] = (len(memoryview(data).cast("B")), digest)
+                digest = hashlib.blake2b(whole, digest_size=16).hexdigest()
+                written[os.fspath(path)] = (len(whole), digest)
         except OSError as exc:
             if exc.errno in (errno.ENOSPC, errno.EDQUOT):
                 raise OutputError(f"no space left on device while writing {path}") from exc

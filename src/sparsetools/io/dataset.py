@@ -296,12 +296,14 @@ class ManifestRow:
         return cls(**values)
 
     @staticmethod
-    def to_table(rows: Iterable[ManifestRow]) -> pa.Table:
+    def to_table(rows: Iterable[ManifestRow], *, every_column: bool = False) -> pa.Table:
         """The rows as an Arrow table of :data:`MANIFEST_SCHEMA` (columns, order, types), then
-        the columns of :data:`OPTIONAL_SCHEMA` that some row fills."""
+        the columns of :data:`OPTIONAL_SCHEMA` that some row fills (``every_column``: all of
+        them, the table of :data:`FULL_SCHEMA` whatever the rows)."""
         rows = list(rows)
         fields = [*MANIFEST_SCHEMA]
-        fields += [f for f in OPTIONAL_SCHEMA if any(getattr(r, f.name) is not None for r in rows)]
+        fields += [f for f in OPTIONAL_SCHEMA
+                   if every_column or any(getattr(r, f.name) is not None for r in rows)]  # fmt: skip
         columns = [pa.array([getattr(r, f.name) for r in rows], type=f.type) for f in fields]
         return pa.Table.from_arrays(columns, schema=pa.schema(fields))
 

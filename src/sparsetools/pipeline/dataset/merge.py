@@ -84,16 +84,6 @@ def _frame_ranks(sequence: Iterable[str], frame: Iterable[str]) -> dict[tuple[st
     }
 
 
-def _rows_table(rows: list[ManifestRow]):
-    """Rows as an Arrow table of :data:`FULL_SCHEMA` (every optional column, nulls included)."""
-    import pyarrow as pa
-
-    return pa.Table.from_arrays(
-        [pa.array([getattr(r, f.name) for r in rows], type=f.type) for f in FULL_SCHEMA],
-        schema=FULL_SCHEMA,
-    )
-
-
 _OPTIONAL = tuple(OPTIONAL_SCHEMA.names)
 
 
@@ -157,7 +147,6 @@ def merge_staged(
     id, sequence and frame name; rows are read again and written a row group at a time.
     """
     import pyarrow as pa
-    import pyarrow.compute as pc
 
     # Everything written or deleted below is inside the dataset and reached through no link
     # (a ds/sparse that links to another folder is refused, its parts are never touched).
@@ -168,7 +157,7 @@ def merge_staged(
     staging = out / STAGING
     staged = _Staged.scan(staging)
     manifest_path = out / MANIFEST_NAME
-    old = _rows_table([])
+    old = ManifestRow.to_table([], every_column=True)
     old_info: dict = {}
     if manifest_path.is_file():
         table, old_info = read_manifest(manifest_path)
@@ -186,10 +175,10 @@ def merge_staged(
     del restaged
     kept = sorted(np.flatnonzero(~gone).tolist(), key=old_ids.__getitem__)
     lost = old.filter(pa.array(gone))
-    referenced_old = _values(old, "sparse_parquet")
-    removed_parts = _values(lost, "sparse_parquet")
-    referenced_points = _values(old, "points_parquet")
-    removed_points = _values(lost, "points_parquet")
+    referenced_old = _values(old.column("sparse_parquet"))
+    removed_parts = _values(lost.column("sparse_parquet"))
+    referenced_points = _values(old.column("points_parquet"))
+    removed_points = _values(lost.column("points_parquet"))
     del lost
     old_seq, old_frame = old.column("sequence").to_pylist(), old.column("frame").to_pylist()
     old_split = old.column("split").to_pylist()
@@ -238,20 +227,8 @@ def merge_staged(
             moved[fid] = (rel, i)
 
     # Old parts that lose rows (overwritten frames) are rewritten with the rows kept.
-    old_part, old_row = (
-        old.column("sparse_parquet").to_pylist(),
-        old.column("sparse_row").to_pylist(),
-    )
-    for rel in sorted(removed_parts):
-        rows = [(old_ids[i], old_row[i]) for i in kept if old_part[i] == rel]
-        if not rows:
-            continue
-        table = read_sparse_part(resolve_in_dataset(out, rel))
-        sub = table.take(pa.array([row for _, row in rows], type=pa.int64()))
-        if sub.column("id").to_pylist() != [fid for fid, _ in rows]:
-            raise FormatError(f"{rel}: rows do not match the manifest; run 'dataset verify'")
-        new_part(sub, [fid for fid, _ in rows])
-    del old_part, old_row
+    for sub, ids in _kept_rows(out, old, kept, "sparse", removed_parts, read_sparse_part):
+        new_part(sub, ids)
 
     # The new frames' points, in id order, frames_per_part to a part (read a part at a time):
     # the j-th new frame with points is row j % frames_per_part of part first_new + j // ...
@@ -282,14 +259,15 @@ def merge_staged(
         [*(old_seq[i] for i in kept), *(staged.sequence[i] for i in new)],
         [*(old_frame[i] for i in kept), *(staged.frame[i] for i in new)],
     )
+    # The optional columns some row fills, and the image roots some row names (kept rows:
+    # one column at a time, never a copy of the earlier manifest).
+    kept_at = pa.array(kept, pa.int64())
     filled = {name for k, name in enumerate(_OPTIONAL)
               if any(staged.optional[i] >> k & 1 for i in new)
-              or pc.any(old.column(name).take(pa.array(kept, pa.int64())).is_valid()).as_py()}  # fmt: skip
+              or old.column(name).take(kept_at).null_count < len(kept)}  # fmt: skip
     if points_of:
         filled |= {"points_parquet", "points_row"}
-    used = {staged.rgb_root[i] for i in new} | _values(
-        old.take(pa.array(kept, pa.int64())), "rgb_root"
-    )
+    used = {staged.rgb_root[i] for i in new} | _values(old.column("rgb_root").take(kept_at))
     used.discard(None)
     merged_info = {**old_info, **info}
     merged_info.pop("schema_version", None)
@@ -306,7 +284,7 @@ def merge_staged(
         new_at = [i for _, is_new, i in entries if is_new]
         table = pa.concat_tables([
             old.take(pa.array(old_at, pa.int64())),
-            _rows_table([staged.read(i)[0] for i in new_at]),
+            ManifestRow.to_table([staged.read(i)[0] for i in new_at], every_column=True),
         ])  # fmt: skip
         rank_old, rank_new = iter(range(len(old_at))), iter(range(len(old_at), table.num_rows))
         table = table.take(pa.array(
@@ -376,7 +354,7 @@ def _kept_parts(manifest: Path, column: str = "sparse_parquet") -> set[str]:
 
     if column not in pq.read_schema(manifest).names:
         return set()
-    return _values(pq.read_table(manifest, columns=[column]), column)
+    return _values(pq.read_table(manifest, columns=[column]).column(column))
 
 
 def _merge_points(out, contained, old, kept, new_ids, referenced_old, removed, frames_per_part):
@@ -385,7 +363,6 @@ def _merge_points(out, contained, old, kept, new_ids, referenced_old, removed, f
     ``old``'s rows ``kept``), the staged points of the frames ``new_ids`` written in new
     parts. Returns (part, row) by sample id of the rows written, and the clean-up to run
     after the manifest: delete the parts it no longer refers to."""
-    import pyarrow as pa
 
     folder = out / POINTS_DIR
     contained.check(folder, what="folder")
@@ -409,20 +386,8 @@ def _merge_points(out, contained, old, kept, new_ids, referenced_old, removed, f
         for i, fid in enumerate(ids):
             where[fid] = (rel, i)
 
-    ids_old = old.column("id").to_pylist()
-    part_old, row_old = (
-        old.column("points_parquet").to_pylist(),
-        old.column("points_row").to_pylist(),
-    )
-    for rel in sorted(removed):
-        rows = [(ids_old[i], row_old[i]) for i in kept if part_old[i] == rel]
-        if not rows:
-            continue
-        table = read_points_part(resolve_in_dataset(out, rel))
-        sub = table.take(pa.array([row for _, row in rows], type=pa.int64()))
-        if sub.column("id").to_pylist() != [fid for fid, _ in rows]:
-            raise FormatError(f"{rel}: rows do not match the manifest; run 'dataset verify'")
-        new_part(sub, [fid for fid, _ in rows])
+    for sub, ids in _kept_rows(out, old, kept, "points", removed, read_points_part):
+        new_part(sub, ids)
     ids = sorted(staged)
     per_part = min(frames_per_part, POINTS_PER_PART)
     for start in range(0, len(ids), per_part):
@@ -445,9 +410,30 @@ def _merge_points(out, contained, old, kept, new_ids, referenced_old, removed, f
     return where, clean
 
 
-def _values(table, column: str) -> set[str]:
-    """The distinct non-empty values of a string column."""
-    return {v for v in table.column(column).unique().to_pylist() if v is not None}
+def _kept_rows(out: Path, old, kept: list[int], kind: str, parts: set[str], read):
+    """For each part of ``parts`` (``kind``: ``sparse`` or ``points``) that rows ``kept`` of the
+    earlier manifest ``old`` are in, in name order: the table of those rows read from the part
+    (``read``) and their ids, checked against the manifest."""
+    import pyarrow as pa
+
+    ids = old.column("id").to_pylist()
+    part = old.column(f"{kind}_parquet").to_pylist()
+    row = old.column(f"{kind}_row").to_pylist()
+    by_part: dict[str, list[int]] = defaultdict(list)
+    for i in kept:
+        if part[i] in parts:
+            by_part[part[i]].append(i)
+    for rel in sorted(by_part):
+        at = by_part[rel]
+        sub = read(resolve_in_dataset(out, rel)).take(pa.array([row[i] for i in at], pa.int64()))
+        if sub.column("id").to_pylist() != [ids[i] for i in at]:
+            raise FormatError(f"{rel}: rows do not match the manifest; run 'dataset verify'")
+        yield sub, [ids[i] for i in at]
+
+
+def _values(column) -> set[str]:
+    """The distinct non-empty values of an Arrow string column."""
+    return {v for v in column.unique().to_pylist() if v is not None}
 
 
 def _counts(table) -> dict:
