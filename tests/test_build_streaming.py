@@ -31,7 +31,8 @@ from sparsetools.io.dataset import (
 from sparsetools.io.manifest_writer import ManifestWriter, write_manifest
 from sparsetools.io.provenance import iter_frame_records, output_identity
 from sparsetools.pipeline.dataset import merge
-from sparsetools.pipeline.dataset.staging import STAGING, write_record
+from sparsetools.pipeline.dataset.staged import write_record
+from sparsetools.pipeline.dataset.staging import STAGING
 from test_dataset import build, make_inputs
 
 

@@ -704,7 +704,10 @@ def test_resume_after_interrupted_run(inputs, tmp_path):
     with pytest.raises(FrameError, match="seqC/000002"):
         build(inputs, out)
     assert not (out / MANIFEST_NAME).exists()
-    assert len(list((out / ".staging").rglob("*.rec"))) == 8
+    from sparsetools.pipeline.dataset.staged import latest_entries
+
+    assert len(latest_entries(out / ".staging")) == 8  # staged: one pack entry per frame
+    assert not list((out / ".staging").rglob("*.rec"))
     bad.write_bytes(good)
     summary = build(inputs, out)
     assert (

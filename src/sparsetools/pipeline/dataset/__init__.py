@@ -25,14 +25,8 @@ from .splits import (
     read_split_file,
     sequence_resolver,
 )
-from .staging import (
-    STAGING,
-    DatasetFrameInput,
-    DatasetFrameStats,
-    read_record,
-    read_staged,
-    write_record,
-)
+from .staged import read_record, read_staged, write_record
+from .staging import STAGING, DatasetFrameInput, DatasetFrameStats
 from .verify import VerifyReport, verify_dataset
 
 __all__ = [

@@ -37,6 +37,7 @@ from .merge import merge_staged
 from .official_splits import official_split_lists
 from .settings import SPARSE_FORMATS, BuildSettings
 from .splits import SplitListsReport, sequence_resolver, split_file_assignments
+from .staged import latest_entries
 from .staging import (
     STAGES,
     STAGING,
@@ -401,16 +402,20 @@ class DatasetJob(BatchJob[DatasetFrameInput]):
         return (out_dir / MANIFEST_NAME,)
 
     def is_complete(self, out_dir: Path) -> Callable[[FrameTask], bool]:
-        """A frame is complete when its files exist and it is staged or in the manifest."""
+        """A frame is complete when its files exist and it is in the manifest or staged (an
+        entry of a staging pack, or the record file of an earlier version)."""
         manifest = out_dir / MANIFEST_NAME
         merged = set()
         if manifest.is_file():
             merged = set(read_manifest(manifest)[0].column("id").to_pylist())
+        staged = set(latest_entries(out_dir / STAGING))
 
         def complete(task: FrameTask) -> bool:
             files = [p for role, p in task.outputs.items() if role not in ("staged", "points")]
             return all(p.is_file() for p in files) and (
-                task.outputs["staged"].is_file() or task.inputs.id in merged
+                task.inputs.id in merged
+                or task.inputs.id in staged
+                or task.outputs["staged"].is_file()
             )
 
         return complete
@@ -441,9 +446,13 @@ class DatasetJob(BatchJob[DatasetFrameInput]):
             frames_per_part=self.frames_per_part,
             only={t.inputs.id for t in tasks} if summary.overwrite else None,
         )
-        stats = self.stats(summary)
-        stages = {"t_plan": round(self.plan_seconds, 4)}
-        stages.update({k: round(sum(getattr(x, k) for x in stats), 4) for k in STAGES})
+        linked, stages = 0, {"t_plan": round(self.plan_seconds, 4)}
+        sums = dict.fromkeys(STAGES, 0.0)
+        for _, x in self.iter_stats(summary):  # one frame's statistics at a time
+            linked += x.linked
+            for k in STAGES:
+                sums[k] += getattr(x, k)
+        stages.update({k: round(v, 4) for k, v in sums.items()})
         stages["t_finalize"] = round(time.perf_counter() - t0, 4)
         lists = {}
         if self.split_lists is not None:
@@ -453,7 +462,7 @@ class DatasetJob(BatchJob[DatasetFrameInput]):
             **merged,
             "unmatched": dict(self.unmatched),
             **lists,
-            "linked": sum(x.linked for x in stats),
+            "linked": linked,
             "stage_seconds": stages,
             "output": str(out_dir),
         }

@@ -8,6 +8,7 @@ referenced and the staging folder deleted. Interrupted anywhere, the next build 
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import heapq
 import itertools
@@ -44,7 +45,8 @@ from ...io.dataset_parts import (
 from ...io.manifest_writer import ManifestWriter
 from ...io.points_table import sparse_part_table
 from .splits import assign_splits
-from .staging import POINTS_SUFFIX, STAGING, read_staged
+from .staged import StagedAt, latest_entries, read_staged, read_staged_entry, staged_row
+from .staging import POINTS_SUFFIX, STAGING
 
 __all__ = ["merge_staged"]
 
@@ -89,7 +91,7 @@ _OPTIONAL = tuple(OPTIONAL_SCHEMA.names)
 
 @dataclasses.dataclass
 class _Staged:
-    """The staging records, in sample-id order, as the few columns the merge decides on (a
+    """The staged frames, in sample-id order, as the few columns the merge decides on (a
     record's whole row is read again when it is written: nothing per frame is held but these)."""
 
     folder: Path
@@ -99,43 +101,88 @@ class _Staged:
     rgb_root: list[str | None]
     optional: list[int]  # bit k: the row fills OPTIONAL_SCHEMA's k-th column
     points: list[bool]  # the record holds the frame's sparse points
+    where: list[StagedAt | None]  # its pack entry; None: a file of its own (earlier versions)
 
     @classmethod
     def scan(cls, staging: Path) -> _Staged:
-        """Read every record of ``staging`` once; a record whose sample id is not its file
-        name is refused (a record is untrusted input: it must not stand for another frame)."""
-        found = []
-        if staging.is_dir():
-            for p in staging.rglob("*.rec"):
-                if not p.name.startswith(TMP_PREFIX):
-                    found.append((p.relative_to(staging).as_posix()[: -len(".rec")], p))
-        found.sort()
-        s = cls(staging, [], [], [], [], [], [])
-        sequences: dict[str, str] = {}
-        for fid, p in found:
-            row, points = read_staged(p)
+        """Read every staged record once: each sample's latest pack entry, and the record
+        files of earlier versions (a sample with both has its entry). A record is untrusted
+        input: one naming another sample than its entry's id or its file name is refused
+        (it must not stand for another frame)."""
+        found: dict[str, tuple[StagedAt | None, _Brief, bool]] = {}
+        for fid, at in latest_entries(staging).items():
+            source = f"{staging / at.pack} (byte {at.offset})"
+            row, points = staged_row(read_staged_entry(staging, at), source)
             if row.id != fid:
                 raise FormatError(
-                    f"{p}: corrupt staging record (it names sample {row.id!r}, not {fid!r}); "
-                    "delete it and rerun"
+                    f"{source}: corrupt staging record (it names sample {row.id!r}, its "
+                    f"entry {fid!r}); delete {staging} and rerun"
                 )
+            found[fid] = (at, _Brief.of(row), points is not None)
+        if staging.is_dir():
+            for p in staging.rglob("*.rec"):
+                fid = p.relative_to(staging).as_posix()[: -len(".rec")]
+                if p.name.startswith(TMP_PREFIX) or fid in found:
+                    continue
+                row, points = read_staged(p)
+                if row.id != fid:
+                    raise FormatError(
+                        f"{p}: corrupt staging record (it names sample {row.id!r}, not "
+                        f"{fid!r}); delete it and rerun"
+                    )
+                found[fid] = (None, _Brief.of(row), points is not None)
+        s = cls(staging, [], [], [], [], [], [], [])
+        sequences: dict[str, str] = {}
+        for fid in sorted(found):
+            at, row, has_points = found.pop(fid)
             s.ids.append(fid)
             s.sequence.append(sequences.setdefault(row.sequence, row.sequence))  # shared
             s.frame.append(row.frame)
             s.rgb_root.append(row.rgb_root)
-            s.optional.append(
-                sum(1 << k for k, name in enumerate(_OPTIONAL) if getattr(row, name) is not None)
-            )
-            s.points.append(points is not None)
+            s.optional.append(row.optional)
+            s.points.append(has_points)
+            s.where.append(at)
         return s
 
     def read(self, i: int) -> tuple[ManifestRow, tuple | None]:
         """The ``i``-th record's row and points."""
-        return read_staged(self.folder / f"{self.ids[i]}.rec")
+        at = self.where[i]
+        if at is None:
+            return read_staged(self.folder / f"{self.ids[i]}.rec")
+        return staged_row(
+            read_staged_entry(self.folder, at), f"{self.folder / at.pack} (byte {at.offset})"
+        )
+
+    def row(self, fid: str) -> ManifestRow:
+        """The row of sample ``fid`` (staged)."""
+        i = bisect.bisect_left(self.ids, fid)
+        return self.read(i)[0]
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class _Brief:
+    """What the merge keeps of a staged row until it writes it."""
+
+    sequence: str
+    frame: str
+    rgb_root: str | None
+    optional: int
+
+    @classmethod
+    def of(cls, row: ManifestRow) -> _Brief:
+        bits = sum(1 << k for k, name in enumerate(_OPTIONAL) if getattr(row, name) is not None)
+        return cls(row.sequence, row.frame, row.rgb_root, bits)
 
 
 def merge_staged(
-    out: Path, *, fractions, seed, assignment, info, frames_per_part, only: set[str] | None = None
+    out: Path,
+    *,
+    fractions,
+    seed,
+    assignment,
+    info,
+    frames_per_part,
+    only: set[str] | None = None,
 ) -> dict:
     """Merge staged frames into the manifest and parts (see the module docstring).
 
@@ -248,7 +295,7 @@ def merge_staged(
 
     points_of, drop_stale_points = _merge_points(
         out, contained, old, kept, [staged.ids[i] for i in new], referenced_points,
-        removed_points, frames_per_part,
+        removed_points, frames_per_part, staged.row,
     )  # fmt: skip
 
     # The manifest, a row group at a time: kept rows and new rows merged in id order.
@@ -357,7 +404,9 @@ def _kept_parts(manifest: Path, column: str = "sparse_parquet") -> set[str]:
     return _values(pq.read_table(manifest, columns=[column]).column(column))
 
 
-def _merge_points(out, contained, old, kept, new_ids, referenced_old, removed, frames_per_part):
+def _merge_points(
+    out, contained, old, kept, new_ids, referenced_old, removed, frames_per_part, staged_row_of
+):
     """The points parts (``--store-points``), as the sparse parts above: parts of an
     interrupted finalize dropped, old parts that lose rows rewritten with the rows kept (in
     ``old``'s rows ``kept``), the staged points of the frames ``new_ids`` written in new
@@ -397,7 +446,7 @@ def _merge_points(out, contained, old, kept, new_ids, referenced_old, removed, f
             arr = np.load(staged[fid], allow_pickle=False)
             ring = arr[:, 3].astype(np.int16)
             clouds.append((arr[:, :3], None if (ring < 0).all() and len(ring) else ring))
-            row, _ = read_staged(out / STAGING / f"{fid}.rec")
+            row = staged_row_of(fid)
             sizes.append((row.height, row.width))
         new_part(points_part_table(chunk, clouds, sizes), chunk)
 

@@ -1,10 +1,11 @@
-"""The per-frame work of ``dataset build`` and its staging record.
+"""The per-frame work of ``dataset build``.
 
 Each frame is copied (or reflinked) into the dataset, decoded to check sizes, hashed, and its
-manifest row (:class:`~sparsetools.io.dataset.ManifestRow`) staged as
-``DATASET/.staging/<id>.rec`` (written last, atomically: a frame whose record exists is
-complete). :class:`sparsetools.pipeline.dataset.build.DatasetJob` runs
-:func:`stage_frame` per frame, then :mod:`.merge` merges the records into the manifest.
+manifest row (:class:`~sparsetools.io.dataset.ManifestRow`) and sparse points staged: its
+staging record appended to a pack in ``DATASET/.staging/`` (:mod:`.staged`), last (an entry
+means a complete frame).
+:class:`sparsetools.pipeline.dataset.build.DatasetJob` runs :func:`stage_frame` per frame,
+then :mod:`.merge` merges the staged records into the manifest.
 """
 
 from __future__ import annotations
@@ -24,7 +25,6 @@ from ...io.dataset import (
     MAX_SIDE,
     SPARSE_DIR,
     ManifestRow,
-    brief_error,
     bytes_sha256,
     depth_to_points,
     points_sha256,
@@ -32,6 +32,7 @@ from ...io.dataset import (
 from ...io.depth_files import decode_confidence_bytes, decode_depth_bytes
 from ..core import FrameStats
 from .settings import BuildSettings
+from .staged import append_staged, encode_record
 
 __all__ = [
     "STAGES",
@@ -40,11 +41,9 @@ __all__ = [
     "DatasetFrameStats",
     "InputFolders",
     "camera_points",
-    "read_record",
-    "read_staged",
     "sample_files",
     "stage_frame",
-    "write_record",
+    "staging_folder",
 ]
 
 STAGING = ".staging"
@@ -128,74 +127,6 @@ def _clean_points(u, v, d, h: int, w: int, source: str) -> np.ndarray:
     depth = np.zeros((h, w), dtype=np.float32)
     depth[v.astype(np.intp), u.astype(np.intp)] = d
     return depth
-
-
-_RECORD_MAGIC = b"SPTREC1\n"
-
-
-def write_record(path: Path, row: Mapping, points) -> None:
-    """Staging record: magic, JSON header (manifest row, point count), then the raw points.
-
-    ``row`` is a manifest row as JSON values (:meth:`ManifestRow.to_dict`); ``points`` the
-    frame's (u, v, depth) arrays, or None.
-
-    Layout: ``SPTREC1\n``, uint64 LE header length, UTF-8 JSON, then u (uint16 LE),
-    v (uint16 LE), depth (float32 LE). Far cheaper than a one-row Parquet file or an .npz
-    (about 0.1 ms vs 3-5 ms to write and read back here).
-    """
-    n = -1 if points is None else int(len(points[0]))
-    header = json.dumps({"row": row, "n_points": n}).encode("utf-8")
-    parts = [_RECORD_MAGIC, np.uint64(len(header)).astype("<u8").tobytes(), header]
-    if points is not None:
-        u, v, d = points
-        parts += [
-            np.asarray(u, "<u2").tobytes(),
-            np.asarray(v, "<u2").tobytes(),
-            np.asarray(d, "<f4").tobytes(),
-        ]
-    atomic_write_bytes(path, b"".join(parts))
-
-
-def read_record(path: Path) -> tuple[dict, tuple | None]:
-    """The row (as stored: a dict) and the points (or None) of a staging record."""
-    try:
-        data = path.read_bytes()
-        if not data.startswith(_RECORD_MAGIC):
-            raise ValueError("bad magic")
-        start = len(_RECORD_MAGIC) + 8
-        size = int(np.frombuffer(data[len(_RECORD_MAGIC) : start], "<u8")[0])
-        header = json.loads(data[start : start + size].decode("utf-8"))
-        n = int(header["n_points"])
-        body = memoryview(data)[start + size :]
-        if n < 0:
-            points = None
-        elif len(body) != 8 * n:
-            raise ValueError(f"{len(body)} bytes of points, expected {8 * n}")
-        else:
-            points = (
-                np.frombuffer(body[: 2 * n], "<u2").astype(np.uint16),
-                np.frombuffer(body[2 * n : 4 * n], "<u2").astype(np.uint16),
-                np.frombuffer(body[4 * n :], "<f4").astype(np.float32),
-            )
-        row = header["row"]
-        if not isinstance(row, dict):
-            raise ValueError("the record's row is not an object")
-    except (OSError, ValueError, KeyError, TypeError, IndexError, OverflowError) as exc:
-        raise _corrupt(path, exc) from exc
-    return row, points
-
-
-def read_staged(path: Path) -> tuple[ManifestRow, tuple | None]:
-    """The manifest row and the points (or None) of a staging record."""
-    row, points = read_record(path)
-    try:
-        return ManifestRow.from_dict(row), points
-    except (TypeError, ValueError) as exc:
-        raise _corrupt(path, exc) from exc
-
-
-def _corrupt(path: Path, exc: BaseException) -> FormatError:
-    return FormatError(f"{path}: corrupt staging record ({brief_error(exc)}); delete it and rerun")
 
 
 def _image_calibration(calib_path: str, image: str, w: int, h: int, camera: int = 2):
@@ -476,8 +407,9 @@ def sample_files(
     x: DatasetFrameInput, sparse_format: str, store: str = "copy", *, store_points: bool = False
 ) -> dict[str, str]:
     """Dataset-relative path of every file a frame writes, by role; with ``store_points``
-    its points (``points``, staged: merged into a part); the staging record (``staged``,
-    written last: it marks the frame complete) at the end. With ``store`` ``reference`` the
+    its points (``points``, staged: merged into a part); at the end ``staged``, the staging
+    record's name as earlier versions wrote it (a file per frame; the record now goes into
+    a pack of that folder, :mod:`.staged`: the role stays, so that their folders resume). With ``store`` ``reference`` the
     camera image is not written (it is referenced in place)."""
     files = {} if store == "reference" else {"rgb": f"rgb/{x.id}{Path(x.rgb).suffix.lower()}"}
     if sparse_format in ("png", "both"):
@@ -672,6 +604,11 @@ def stage_frame(
     for wdata, wsrc, wdst in writes:
         linked += timed("t_write", _store, wdata, wsrc, wdst, settings.store == "link")
     t0 = clock()
-    write_record(outputs["staged"], row.to_dict(), points)
+    append_staged(staging_folder(outputs["staged"], fid), fid, encode_record(row.to_dict(), points))
     t["t_stage"] += clock() - t0
     return DatasetFrameStats(n_sparse=n_sparse, linked=linked, **t)
+
+
+def staging_folder(staged: Path, fid: str) -> Path:
+    """The staging folder of a frame, from its ``staged`` output (``<folder>/<id>.rec``)."""
+    return Path(staged).parents[fid.count("/")]
