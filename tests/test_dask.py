@@ -87,7 +87,10 @@ def test_lowlight_seeded_output_identical_on_a_scheduler_address(frames, tmp_pat
     assert {k: local[k] for k in pngs} == {k: dask[k] for k in pngs}
 
 
-def test_unreachable_scheduler_is_a_clear_error(frames, tmp_path):
+def test_unreachable_scheduler_is_a_clear_error(frames, tmp_path, monkeypatch):
+    from sparsetools.pipeline import dask as dask_executor
+
+    monkeypatch.setattr(dask_executor, "CONNECT_TIMEOUT", "1s")  # what is refused, not how late
     r = CliRunner().invoke(
         cli,
         [

@@ -27,6 +27,10 @@ __all__ = ["DaskExecutor"]
 log = logging.getLogger(__name__)
 
 
+#: How long a scheduler given by address may take to answer before the run is refused.
+CONNECT_TIMEOUT = "10s"
+
+
 class DaskExecutor:
     """Run per-frame functions on Dask.
 
@@ -77,7 +81,7 @@ class DaskExecutor:
 
         if self.scheduler:
             try:
-                return Client(self.scheduler, timeout="10s"), None
+                return Client(self.scheduler, timeout=CONNECT_TIMEOUT), None
             except (OSError, TimeoutError) as exc:
                 raise ParameterError(
                     f"cannot reach the Dask scheduler at {self.scheduler}: {exc}"
