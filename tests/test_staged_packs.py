@@ -209,6 +209,21 @@ def test_a_folder_staged_a_file_per_frame_still_resumes(tmp_path):
     assert verify_dataset(out).problems == ()
 
 
+def test_overwrite_after_an_interruption_keeps_only_the_frames_it_is_given(tmp_path):
+    inputs, out = _interrupted(tmp_path)
+    sub = tmp_path / "sub"
+    for kind in ("rgb", "sparse", "gt", "conf", "calib"):
+        shutil.copytree(inputs / kind / "seqA", sub / kind / "seqA")
+    summary = build(sub, out, overwrite=True)
+    assert summary["samples"] == 3
+    ids = read_manifest(out / MANIFEST_NAME)[0].column("id").to_pylist()
+    assert sorted(ids) == ["seqA/000000", "seqA/000001", "seqA/000002"]
+    assert verify_dataset(out).problems == ()
+    once = tmp_path / "once"
+    build(sub, once)
+    assert _manifest_rows(out) == _manifest_rows(once)
+
+
 def test_parallel_workers_write_packs_of_their_own_and_the_same_dataset(tmp_path):
     inputs = make_inputs(tmp_path / "in", sequences=("a", "b", "c", "d"), frames=4)
     one, two = tmp_path / "one", tmp_path / "two"

@@ -25,6 +25,7 @@ from pathlib import Path
 from ..._version import __version__
 from ...errors import FormatError, OutputError, ParameterError
 from ...io.atomic import TMP_PREFIX
+from ...io.containment import remove_output
 from ...io.dataset import MANIFEST_NAME, SPARSE_DIR, check_root_name, read_manifest
 from ...io.points_table import read_points_table
 from ...io.provenance import RECORD_DIR
@@ -37,7 +38,7 @@ from .merge import merge_staged
 from .official_splits import official_split_lists
 from .settings import SPARSE_FORMATS, BuildSettings
 from .splits import SplitListsReport, sequence_resolver, split_file_assignments
-from .staged import latest_entries
+from .staged import PACK_SUFFIX, latest_entries
 from .staging import (
     STAGES,
     STAGING,
@@ -400,6 +401,14 @@ class DatasetJob(BatchJob[DatasetFrameInput]):
 
     def shared_outputs(self, out_dir: Path) -> tuple[Path, ...]:
         return (out_dir / MANIFEST_NAME,)
+
+    def before(self, out_dir: Path, batch: Batch) -> None:
+        """With ``--overwrite`` every frame of the run is staged again: the packs of earlier
+        runs are removed first (their entries would stand for frames this run leaves out)."""
+        staging = out_dir / STAGING
+        if batch.overwrite and staging.is_dir():
+            for p in sorted(staging.glob("*" + PACK_SUFFIX)):
+                remove_output(out_dir, p)
 
     def is_complete(self, out_dir: Path) -> Callable[[FrameTask], bool]:
         """A frame is complete when its files exist and it is in the manifest or staged (an

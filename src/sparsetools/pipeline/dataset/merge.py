@@ -234,10 +234,13 @@ def merge_staged(
         if old_split[i] is not None:
             pinned.setdefault(old_seq[i], old_split[i])
 
-    # The new rows: the staged ones the split lists name (all without lists), their splits.
+    # The new rows: the staged ones the split lists name (all without lists), their splits;
+    # with ``only``, of those frames alone.
     new = range(len(staged.ids))
+    if only is not None:
+        new = [i for i in new if staged.ids[i] in only]
     if assignment is not None:
-        unknown = [fid for fid in staged.ids if fid not in assignment]
+        unknown = [staged.ids[i] for i in new if staged.ids[i] not in assignment]
         if unknown:
             log.warning(
                 "%d staged frame(s) are not in the split files and are left out: %s",
