@@ -13,7 +13,8 @@ appended (uint64, ns since the epoch); the sample id's length (uint32); the reco
 BLAKE2b-128 digest (16 bytes); the sample id (UTF-8); the record. A pack is written by one
 process (and thread) only, opened for each entry and closed after it (a file system shared by
 cluster workers shows closed files to the others). A frame staged twice before a merge (again
-after an interruption, or because an input changed) has two entries: the later one counts.
+after an interruption, or because an input changed) has two entries: the later one counts
+(by the appending machine's clock; ``--overwrite`` removes earlier runs' packs first).
 An entry cut short by an interruption is the last of its pack and is ignored; anything else
 that is not an entry, or an entry whose bytes do not match its digest, is refused.
 """
