@@ -1,9 +1,10 @@
 """The last step of ``dataset build``: merge the staged frames into the dataset.
 
-The existing manifest and every staging record (:mod:`.staging`) become one manifest: splits
-assigned (given per frame, or by sequence: :func:`.splits.assign_splits`), the points written
-as new ``sparse/part-*.parquet`` files, then the manifest atomically, then the parts no longer
-referenced and the staging folder deleted. Interrupted anywhere, the next build redoes it.
+The existing manifest and every staged frame (:mod:`.staged`: pack entries, and the record
+files of earlier versions) become one manifest: splits assigned (given per frame, or by
+sequence: :func:`.splits.assign_splits`), the points written as new ``sparse/part-*.parquet``
+files, then the manifest atomically, then the parts no longer referenced and the staging
+folder deleted. Interrupted anywhere, the next build redoes it.
 """
 
 from __future__ import annotations
@@ -156,6 +157,8 @@ class _Staged:
     def row(self, fid: str) -> ManifestRow:
         """The row of sample ``fid`` (staged)."""
         i = bisect.bisect_left(self.ids, fid)
+        if i == len(self.ids) or self.ids[i] != fid:
+            raise KeyError(fid)
         return self.read(i)[0]
 
 
