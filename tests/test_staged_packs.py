@@ -234,3 +234,35 @@ def test_parallel_workers_write_packs_of_their_own_and_the_same_dataset(tmp_path
     assert parts and all(
         (one / "sparse" / n).read_bytes() == (two / "sparse" / n).read_bytes() for n in parts
     )
+
+
+def test_a_staging_folder_that_is_a_link_is_refused_and_nothing_outside_is_touched(tmp_path):
+    inputs = make_inputs(tmp_path / "in")
+    out = tmp_path / "ds"
+    build(inputs, out)
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    victim = outside / "victim.pack"
+    victim.write_bytes(b"not a pack of this dataset")
+    (out / ".staging").symlink_to(outside)
+    for overwrite in (True, False):
+        with pytest.raises(SparsetoolsError, match="symbolic link"):
+            build(inputs, out, overwrite=overwrite)
+        assert victim.read_bytes() == b"not a pack of this dataset"
+
+
+def test_an_earlier_versions_record_that_is_a_link_is_not_followed(tmp_path):
+    # a record file of a frame this run does not build (no output check of the runner's covers
+    # it): the merge reads it, and must not through a link to a record made elsewhere
+    inputs, out = _interrupted(tmp_path)
+    staging = out / ".staging"
+    at = latest_entries(staging)["seqA/000000"]
+    row, pts = decode_record(read_staged_entry(staging, at), "x")
+    row = {**row, "id": "zzz/000000", "sequence": "zzz"}
+    secret = tmp_path / "secret.rec"
+    write_record(secret, row, pts)  # a valid record, outside the dataset
+    (staging / "zzz").mkdir()
+    (staging / "zzz" / "000000.rec").symlink_to(secret)
+    with pytest.raises(SparsetoolsError, match="symbolic link"):
+        build(inputs, out)
+    assert not (out / MANIFEST_NAME).exists()

@@ -120,9 +120,13 @@ def decode_record(data: bytes, source) -> tuple[dict, tuple | None]:
 
 
 def read_record(path: Path) -> tuple[dict, tuple | None]:
-    """The row (as stored: a dict) and the points (or None) of a staging record file."""
+    """The row (as stored: a dict) and the points (or None) of a staging record file (a
+    regular file of bounded size; a link is not followed: the file is untrusted input)."""
+    from ...io.sidecar import read_regular_file
+
     try:
-        data = path.read_bytes()
+        data = read_regular_file(path, what="staging record", max_bytes=_MAX_ENTRY,
+                                 follow_links=False)  # fmt: skip
     except OSError as exc:
         raise _corrupt(path, exc) from exc
     return decode_record(data, path)
@@ -131,19 +135,20 @@ def read_record(path: Path) -> tuple[dict, tuple | None]:
 def staged_row(data: bytes, source) -> tuple[ManifestRow, tuple | None]:
     """The manifest row and the points (or None) of a staging record's bytes."""
     row, points = decode_record(data, source)
-    try:
-        return ManifestRow.from_dict(row), points
-    except (TypeError, ValueError) as exc:
-        raise _corrupt(source, exc) from exc
+    return _manifest_row(row, source), points
 
 
 def read_staged(path: Path) -> tuple[ManifestRow, tuple | None]:
     """The manifest row and the points (or None) of a staging record file."""
     row, points = read_record(path)
+    return _manifest_row(row, path), points
+
+
+def _manifest_row(row: dict, source) -> ManifestRow:
     try:
-        return ManifestRow.from_dict(row), points
+        return ManifestRow.from_dict(row)
     except (TypeError, ValueError) as exc:
-        raise _corrupt(path, exc) from exc
+        raise _corrupt(source, exc) from exc
 
 
 def _corrupt(path, exc: BaseException) -> FormatError:
