@@ -77,11 +77,27 @@ CHANGED_SINCE_020 = {
 }
 
 
+#: What 0.2.0 itself wrote differently on another kind of machine, by case: file -> digest.
+#: A few floating-point results round differently from one CPU to another (vectorised
+#: kernels of the libraries), so bytes are reproducible on one machine, not across machines.
+#: Made 2026-12-03 by ``make_golden.py`` with the 0.2.0 code on a 2-core AVX-512 Xeon VM:
+#: every other file and every record of every case was the same as in ``v0.2.0.json``.
+OTHER_MACHINE = {
+    "lowlight": {
+        "000002_v1.png": "e8d95f165943a38f3ab393cb768fe57036bbc85800cd270a35939a8f85e682b7"
+    },
+}
+
+
 def assert_outputs_as_020(name: str, out: Path, subs: dict[str, str]) -> None:
-    """The files 0.2.0 wrote, byte for byte, but those of :data:`CHANGED_SINCE_020`."""
+    """The files 0.2.0 wrote (on this kind of machine: :data:`OTHER_MACHINE`), byte for byte,
+    but those of :data:`CHANGED_SINCE_020`."""
     import cv2
 
     golden = GOLDEN["cases"][name]["digests"]
+    other = {**golden, **OTHER_MACHINE.get(name, {})}
+    if other != golden and digests(out, subs) == {k: other[k] for k in golden}:
+        golden = other  # all of this kind of machine's files, not a mix of the two
     ours = digests(out, subs)
     assert sorted(ours) == sorted(golden)
     changed = [prefix for prefix, _why in CHANGED_SINCE_020.get(name, ())]

@@ -210,10 +210,18 @@ def test_reference_falls_back_to_dense_sparse_depth_and_refuses_the_rest(tmp_pat
 # -- training ----------------------------------------------------------------------------------------
 #: sha256 of the metrics rows and last.pt's tensors (models, optimizer, RNG, state) of two
 #: runs without PBR, made by the code before PBR existed (commit d672579) with
-#: :func:`_fingerprint` on this CPU, one torch thread.
+#: :func:`_fingerprint`, one torch thread, on each kind of machine the tests ran on: torch's
+#: CPU kernels round differently from one CPU to another (the first: the machine of
+#: 2026-12-02; the second: a 2-core AVX-512 Xeon VM, 2026-12-03).
 BEFORE_PBR = {
-    "camera": "1283647922197559f013f840c844628aa9334865e41bd38a2b387c9256d9e237",
-    "night_lidar": "ceb13684f4d5e016f7ed9a7f85dce2ed0ea23ab227b6049a31095bbf5e0bf70e",
+    "camera": {
+        "1283647922197559f013f840c844628aa9334865e41bd38a2b387c9256d9e237",
+        "06ec3957b314c5e1c84acaba5dc226abbc2a06ef6c2e7eb4e4be4519784ebebf",
+    },
+    "night_lidar": {
+        "ceb13684f4d5e016f7ed9a7f85dce2ed0ea23ab227b6049a31095bbf5e0bf70e",
+        "50987b4bc33182ac65a19b22304d45813a657d7403b086c65d44edc7f2e28b63",
+    },
 }
 OFF_CASES = {
     "camera": dict(input_mode="rgb", selfsup={}),
@@ -237,7 +245,7 @@ def _fingerprint(run_dir: Path) -> str:
 @pytest.mark.parametrize("name", list(OFF_CASES))
 def test_without_pbr_training_is_bit_for_bit_what_it_was(dataset, tmp_path, name):
     train(config(dataset, tmp_path / name, **OFF_CASES[name]))
-    assert _fingerprint(tmp_path / name) == BEFORE_PBR[name]
+    assert _fingerprint(tmp_path / name) in BEFORE_PBR[name]
     assert not any("pbr" in k for k in rows(tmp_path / name)[0])
     assert json.loads((tmp_path / name / "config.json").read_text())["selfsup"]["pbr"] is None
     raw = torch.load(tmp_path / name / "last.pt", weights_only=True)

@@ -11,6 +11,10 @@ self-supervised with SFE branches in depth and pose) it records the fingerprint 
 two-epoch run, of a run stopped by ``max_steps`` inside the second epoch, and of that run
 resumed to the end. ``tests/test_train_golden.py`` checks that
 today's code gives the same metrics (floats equal), checkpoints (tensors equal) and resume.
+
+Bit identity holds on one kind of machine (torch's CPU kernels round differently from one CPU
+to another): on a machine whose results differ from every ``train_v020*.json``, rename what
+this writes to ``train_v020_<machine>.json`` and say in ``test_train_golden.py`` which machine.
 """
 
 from __future__ import annotations
