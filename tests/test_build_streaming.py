@@ -286,3 +286,26 @@ def test_parts_that_lose_rows_keep_every_other_rows_points(tmp_path, monkeypatch
     for kind, column in (("sparse", "sparse_parquet"), ("points", "points_parquet")):
         on_disk = {f"{kind}/{p.name}" for p in (ds / kind).glob("part-*.parquet")}
         assert on_disk == {getattr(r, column) for r in rows}
+
+
+def test_the_merge_reads_each_staged_entry_twice(tmp_path, monkeypatch):
+    """Once for the columns it decides on, once as its row group and points part are written
+    (the points part used to read it a third time); the result is unchanged (the parts and
+    manifest equal those of row groups that do not line up with the parts, above)."""
+    reads = []
+    real = merge.read_staged_entry
+
+    def counted(folder, at):
+        reads.append(at.id)
+        return real(folder, at)
+
+    monkeypatch.setattr(merge, "read_staged_entry", counted)
+    _small_groups(monkeypatch, 4)
+    src = make_inputs(tmp_path / "a", sequences=("s1", "s2", "s3"), frames=3)
+    ds = tmp_path / "ds"
+    build(src, ds, frames_per_part=5)
+    ids = _table(ds).column("id").to_pylist()
+    assert len(ids) == 9
+    assert sorted(reads) == sorted(ids * 2)
+    reader_parts = sorted(_parts(ds))
+    assert reader_parts == [f"sparse/part-0000{i}.parquet" for i in range(2)]  # 5 + 4 frames

@@ -17,8 +17,11 @@ from _pipeline_jobs import RandomInput, WriteRandom
 from sparsetools.errors import FrameError, OutputError
 from sparsetools.io.provenance import (
     FileIdentity,
+    OutputIdentity,
     file_identity,
     hold_lock,
+    output_identity,
+    output_unchanged,
     read_frame_records,
     read_run_record,
 )
@@ -231,7 +234,37 @@ def test_record_lists_input_identity(tmp_path):
     written = (out / "000000.bin").read_bytes()
     size, mtime, digest = line["output_ids"]["data"]
     assert size == len(written) and mtime == (out / "000000.bin").stat().st_mtime_ns
-    assert digest == hashlib.blake2b(written, digest_size=16).hexdigest()
+    assert digest == hashlib.sha256(written).hexdigest()
+
+
+def _touch_later(path):
+    st = path.stat()
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+
+
+@pytest.mark.parametrize("legacy", [False, True])
+def test_a_touched_output_is_judged_by_the_digest_its_record_holds(tmp_path, legacy):
+    """Records written before 0.3 hold BLAKE2b-128 output digests (32 hex digits), today's
+    SHA-256 (64): a touched but unchanged output is up to date either way, an edited one of
+    the same size is not."""
+    p = tmp_path / "out.bin"
+    p.write_bytes(b"abcdefgh" * 100)
+    data = p.read_bytes()
+    st = p.stat()
+    digest = (
+        hashlib.blake2b(data, digest_size=16).hexdigest() if legacy
+        else hashlib.sha256(data).hexdigest()
+    )  # fmt: skip
+    rec = OutputIdentity(st.st_size, st.st_mtime_ns, digest)
+    if not legacy:
+        assert output_identity(p) == rec
+    assert output_unchanged(p, rec)
+    _touch_later(p)
+    assert output_unchanged(p, rec)  # same bytes, later mtime: the digest decides
+    p.write_bytes(b"abcdefgX" * 100)
+    _touch_later(p)
+    assert not output_unchanged(p, rec)
+    assert not output_unchanged(p, OutputIdentity(st.st_size, 0, "ab" * 20))  # unknown kind
 
 
 def test_identity_of_a_large_file_has_no_hash(tmp_path):

@@ -34,7 +34,7 @@ _written: contextvars.ContextVar[dict | None] = contextvars.ContextVar("written"
 @contextlib.contextmanager
 def recording_writes() -> Iterator[dict[str, tuple[int, str]]]:
     """Within the block, :func:`atomic_write_bytes` notes each file it writes: path (as
-    given, ``os.fspath``) -> (size in bytes, BLAKE2b-128 hex digest of the bytes written).
+    given, ``os.fspath``) -> (size in bytes, SHA-256 hex digest of the bytes written).
 
     The frame runner takes an output's identity from here instead of reading the file back
     (``provenance.output_identity`` digests the same way): one ``stat`` instead of an
@@ -130,7 +130,11 @@ def _open_temporary(parent: Path, suffix: str) -> tuple[str, int]:
 
 
 def atomic_write_bytes(
-    path: str | os.PathLike, data: bytes | memoryview, *, overwrite: bool = True
+    path: str | os.PathLike,
+    data: bytes | memoryview,
+    *,
+    overwrite: bool = True,
+    sha256: str | None = None,
 ) -> None:
     """Write ``data`` to ``path`` atomically (temporary file in the same folder, then rename).
 
@@ -139,6 +143,10 @@ def atomic_write_bytes(
     anything is written), with the temporary file written through the descriptor that
     created it: one ``open`` per output instead of two, which matters for writers of many
     small files (``dataset build`` stores four per frame, ``project`` two).
+
+    ``sha256``: the hex SHA-256 of ``data`` when the caller has already computed it (a
+    dataset's manifest records it): inside :func:`recording_writes` it is noted as is
+    instead of hashing the bytes a second time.
     """
     path = Path(path)
     if not overwrite and path.exists():
@@ -156,7 +164,7 @@ def atomic_write_bytes(
             os.replace(name, path)
             written = _written.get()
             if written is not None:
-                digest = hashlib.blake2b(whole, digest_size=16).hexdigest()
+                digest = sha256 or hashlib.sha256(whole).hexdigest()
                 written[os.fspath(path)] = (len(whole), digest)
         except OSError as exc:
             if exc.errno in (errno.ENOSPC, errno.EDQUOT):

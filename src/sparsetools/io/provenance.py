@@ -187,7 +187,9 @@ class RunRecord:
 @dataclass(frozen=True)
 class OutputIdentity:
     """What identifies an output as the one a run wrote: its size, modification time and a
-    BLAKE2b digest of its bytes (a truncated or damaged output no longer matches)."""
+    digest of its bytes (a truncated or damaged output no longer matches): SHA-256, 64 hex
+    digits; records of versions before 0.3 hold BLAKE2b-128, 32 hex digits, and are checked
+    with it (:func:`output_unchanged`)."""
 
     size: int
     mtime_ns: int
@@ -204,8 +206,15 @@ class OutputIdentity:
         return cls(int(size), int(mtime), digest)
 
 
-def output_identity(path: str | os.PathLike) -> OutputIdentity | None:
-    """The identity of an output file (None when it is not a regular file)."""
+#: Hex length of an output digest -> how it is computed: SHA-256 (shared with the dataset
+#: manifest's file hashes, so a written output is hashed once), and the BLAKE2b-128 of records
+#: written before 0.3, so that their folders still resume.
+_DIGESTS = {64: hashlib.sha256, 32: lambda: hashlib.blake2b(digest_size=16)}
+
+
+def output_identity(path: str | os.PathLike, *, digest_hex_len: int = 64) -> OutputIdentity | None:
+    """The identity of an output file (None when it is not a regular file); its digest of the
+    kind ``digest_hex_len`` names (64: SHA-256; 32: the BLAKE2b-128 of earlier records)."""
     try:
         fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
     except OSError:
@@ -214,7 +223,7 @@ def output_identity(path: str | os.PathLike) -> OutputIdentity | None:
         st = os.fstat(fd)
         if not stat.S_ISREG(st.st_mode):
             return None
-        h = hashlib.blake2b(digest_size=16)
+        h = _DIGESTS[digest_hex_len]()
         while chunk := os.read(fd, 1 << 20):
             h.update(chunk)
     finally:
@@ -232,7 +241,9 @@ def output_unchanged(path: str | os.PathLike, recorded: OutputIdentity) -> bool:
         return False
     if st.st_mtime_ns == recorded.mtime_ns:
         return True
-    now = output_identity(path)
+    if len(recorded.digest) not in _DIGESTS:
+        return False
+    now = output_identity(path, digest_hex_len=len(recorded.digest))
     return now is not None and now.digest == recorded.digest
 
 

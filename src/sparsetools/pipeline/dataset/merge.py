@@ -283,21 +283,18 @@ def merge_staged(
     for sub, ids in _kept_rows(out, old, kept, "sparse", removed_parts, read_sparse_part):
         new_part(sub, ids)
 
-    # The new frames' points, in id order, frames_per_part to a part (read a part at a time):
-    # the j-th new frame with points is row j % frames_per_part of part first_new + j // ...
+    # The new frames' points, in id order, frames_per_part to a part, written as the manifest
+    # pass below reads their records (each staged record is read there once): the j-th new
+    # frame with points is row j % frames_per_part of part first_new + j // frames_per_part.
     first_new = next_part
-    with_points = [i for i in new if staged.points[i]]
-    for start in range(0, len(with_points), frames_per_part):
-        chunk = with_points[start : start + frames_per_part]
-        rows, points = [], []
-        for i in chunk:
-            row, pts = staged.read(i)
-            rows.append(row)
-            points.append(pts)
-        ids = [r.id for r in rows]
-        new_part(sparse_part_table(ids, points, [(r.height, r.width) for r in rows]), None)
-        del rows, points
-        pa.default_memory_pool().release_unused()
+    pending: list[tuple[str, tuple, tuple[int, int]]] = []
+
+    def flush_points() -> None:
+        if pending:
+            ids, points, sizes = zip(*pending, strict=True)
+            new_part(sparse_part_table(list(ids), list(points), list(sizes)), None)
+            pending.clear()
+            pa.default_memory_pool().release_unused()
 
     points_of, drop_stale_points = _merge_points(
         out, contained, old, kept, [staged.ids[i] for i in new], referenced_points,
@@ -335,10 +332,23 @@ def merge_staged(
         """The manifest rows of ``entries`` (id order), their merged values filled in."""
         old_at = [i for _, is_new, i in entries if not is_new]
         new_at = [i for _, is_new, i in entries if is_new]
+        new_rows = []
+        for i in new_at:
+            row, pts = staged.read(i)
+            if (pts is not None) != staged.points[i]:
+                raise FormatError(
+                    f"{staging}: the staging record of {row.id} changed during the merge; rerun"
+                )
+            new_rows.append(row)
+            if pts is not None:
+                pending.append((row.id, pts, (row.height, row.width)))
+                if len(pending) == frames_per_part:
+                    flush_points()
         table = pa.concat_tables([
             old.take(pa.array(old_at, pa.int64())),
-            ManifestRow.to_table([staged.read(i)[0] for i in new_at], every_column=True),
+            ManifestRow.to_table(new_rows, every_column=True),
         ])  # fmt: skip
+        del new_rows
         rank_old, rank_new = iter(range(len(old_at))), iter(range(len(old_at), table.num_rows))
         table = table.take(pa.array(
             [next(rank_new) if is_new else next(rank_old) for _, is_new, _ in entries],
@@ -382,6 +392,7 @@ def merge_staged(
             sequences.update(table.column("sequence").unique().to_pylist())
             del table
             pa.default_memory_pool().release_unused()  # mimalloc keeps freed pages otherwise
+        flush_points()
 
     referenced = set(written) | _kept_parts(manifest_path)
     for p in sorted(sparse_dir.glob("part-*.parquet")) if sparse_dir.is_dir() else []:

@@ -93,9 +93,9 @@ def _clone(src: str, dst: Path) -> bool:
         return False
 
 
-def _store(data: bytes, src: str | None, dst: Path, link: bool) -> bool:
-    """Write ``data`` to ``dst`` atomically; with ``link``, as a reflink of ``src`` where the
-    file system can (returns True), else as a copy.
+def _store(data: bytes, sha256: str, src: str | None, dst: Path, link: bool) -> bool:
+    """Write ``data`` (hex SHA-256 ``sha256``) to ``dst`` atomically; with ``link``, as a
+    reflink of ``src`` where the file system can (returns True), else as a copy.
 
     A reflink shares the data blocks copy-on-write but is a file of its own (own inode,
     permissions, times): nothing done to the dataset can change the user's file, unlike a
@@ -107,7 +107,7 @@ def _store(data: bytes, src: str | None, dst: Path, link: bool) -> bool:
                 return True
             tmp.write_bytes(data)
         return False
-    atomic_write_bytes(dst, data)
+    atomic_write_bytes(dst, data, sha256=sha256)
     return False
 
 
@@ -483,7 +483,7 @@ def stage_frame(
     rgb_sha256 = timed("t_hash", bytes_sha256, data)
     # Files are written only once every input of the frame has been decoded and checked, so
     # a bad frame leaves nothing behind in the dataset.
-    writes = [] if ref is not None else [(data, x.rgb, outputs["rgb"])]
+    writes = [] if ref is not None else [(data, rgb_sha256, x.rgb, outputs["rgb"])]
 
     # Sparse depth: the float32 map as decoded, then PNG and/or points.
     fmt = settings.sparse_format
@@ -517,7 +517,7 @@ def stage_frame(
         else:
             png_src = src
         sparse_sha256 = timed("t_hash", bytes_sha256, sparse_png)
-        writes.append((sparse_png, png_src, outputs["sparse"]))
+        writes.append((sparse_png, sparse_sha256, png_src, outputs["sparse"]))
     points = points_sha = None
     if fmt in ("parquet", "both"):
         if max(w, h) > MAX_SIDE:
@@ -542,7 +542,7 @@ def stage_frame(
         if kind == "gt":
             n_gt = int(np.count_nonzero(arr))
         stored[kind] = (rel[kind], timed("t_hash", bytes_sha256, kdata))
-        writes.append((kdata, src_k, outputs[kind]))
+        writes.append((kdata, stored[kind][1], src_k, outputs[kind]))
 
     fx = fy = cx = cy = None
     geometry = {}
@@ -558,7 +558,8 @@ def stage_frame(
         if x.calib is None:
             raise FormatError(f"frame {fid}: --store-points needs the frame's calibration")
         cloud = timed("t_encode", camera_points, x.cloud, calib, sweeps=x.sweeps)
-        writes.append((_npy_bytes(cloud), None, outputs["points"]))
+        cloud_npy = _npy_bytes(cloud)
+        writes.append((cloud_npy, bytes_sha256(cloud_npy), None, outputs["points"]))
     if settings.params:
         params["params"] = settings.params
     if x.sample_params:
@@ -601,8 +602,8 @@ def stage_frame(
         **geometry,
     )
     linked = 0
-    for wdata, wsrc, wdst in writes:
-        linked += timed("t_write", _store, wdata, wsrc, wdst, settings.store == "link")
+    for wdata, wsha, wsrc, wdst in writes:
+        linked += timed("t_write", _store, wdata, wsha, wsrc, wdst, settings.store == "link")
     t0 = clock()
     append_staged(staging_folder(outputs["staged"], fid), fid, encode_record(row.to_dict(), points))
     t["t_stage"] += clock() - t0
