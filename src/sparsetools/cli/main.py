@@ -115,6 +115,9 @@ def cli(ctx):
     )
     ctx.obj.setdefault("quiet", False)
     ctx.obj.setdefault("debug", False)
+    from ..pipeline.executors import steady_allocator
+
+    steady_allocator()  # the process is this command's: frames reuse what the last one freed
 
 
 def main(argv=None):

@@ -93,7 +93,13 @@ class DaskExecutor:
             dashboard_address=None,
             silence_logs=logging.ERROR,
         )
-        return Client(cluster), cluster
+        client = Client(cluster)
+        # the run's own worker processes get the command line's allocator policy (a
+        # scheduler given by address runs someone else's workers: left as they are)
+        from .executors import steady_allocator
+
+        client.run(steady_allocator)
+        return client, cluster
 
     def map(self, fn: Callable[[Any], Any], items: Iterable[Any]) -> Iterator[Any]:
         from .chunking import ChunkSizer, map_in_chunks, run_chunk
