@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import fnmatch
 import json
+import lzma
 import re
 import shutil
 from collections import Counter
@@ -63,13 +64,16 @@ def summary(*args) -> dict:
 
 
 # -- the shipped lists ------------------------------------------------------------------------------
+def _unpacked(dataset: str, file: str) -> bytes:
+    """A shipped list's bytes (stored as ``<file>.xz``)."""
+    return lzma.decompress((SHIPPED / dataset / f"{file}.xz").read_bytes())
 
 
 @pytest.mark.parametrize(("dataset", "file"), sorted(README_COUNTS))
 def test_each_shipped_list_loads_with_the_readmes_count(dataset, file):
     lines = shipped_split_lines(dataset, file)
     assert len(lines) == README_COUNTS[(dataset, file)]
-    raw = (SHIPPED / dataset / file).read_text(encoding="utf-8").splitlines()
+    raw = _unpacked(dataset, file).decode("utf-8").splitlines()
     assert len(lines) == sum(1 for line in raw if line.strip())  # every line read, none dropped
     if dataset == "kitti":  # <date>/<drive>_sync <frame> <l|r>
         pattern = re.compile(r"^(\d{4}_\d\d_\d\d)/\1_drive_\d{4}_sync$")
@@ -98,12 +102,10 @@ def test_the_shipped_lists_are_verbatim_copies(real_dir):
     for dataset in ("kitti", "nuscenes"):
         files = sorted(p.name for p in (SHARED_SPLITS / dataset).glob("*.txt"))
         assert files == sorted(
-            p.name for p in (SHIPPED / dataset).iterdir() if p.name.endswith(".txt")
+            p.name[: -len(".xz")] for p in (SHIPPED / dataset).iterdir() if p.name.endswith(".xz")
         )
         for name in files:
-            assert (SHIPPED / dataset / name).read_bytes() == (
-                SHARED_SPLITS / dataset / name
-            ).read_bytes()
+            assert _unpacked(dataset, name) == (SHARED_SPLITS / dataset / name).read_bytes()
 
 
 def test_the_lists_are_package_data():
@@ -116,7 +118,31 @@ def test_the_lists_are_package_data():
     files = [p.relative_to(pkg).as_posix() for p in (pkg / "data" / "splits").rglob("*")
              if p.is_file()]  # fmt: skip
     assert "data/splits/README.txt" in files and len(files) == 1 + 9 + 7
+    assert all(f.endswith(".txt.xz") for f in files if f != "data/splits/README.txt")
     assert all(any(fnmatch.fnmatch(f, g) for g in globs) for f in files)
+
+
+def test_a_compressed_split_file_reads_as_its_text(tmp_path):
+    """``--split-file`` takes an xz-compressed list as the shipped ones are stored; a broken
+    or oversized one is refused in one line."""
+    from sparsetools.pipeline.dataset import splits
+
+    text = "2011_09_26/2011_09_26_drive_0002_sync 0000000003 l\n# a comment\nseqA/000001\n"
+    (tmp_path / "a.txt").write_text(text)
+    (tmp_path / "a.txt.xz").write_bytes(lzma.compress(text.encode()))
+    assert splits.read_split_file(tmp_path / "a.txt.xz") == splits.read_split_file(
+        tmp_path / "a.txt"
+    )
+    (tmp_path / "cut.txt.xz").write_bytes(lzma.compress(text.encode())[:-9])
+    (tmp_path / "big.txt.xz").write_bytes(lzma.compress(b"x\n" * 1000))
+    for name, why in (("cut.txt.xz", "cannot read split file"), ("big.txt.xz", "MiB of text")):
+        with pytest.raises(ParameterError, match=why):
+            if name == "big.txt.xz":
+                with pytest.MonkeyPatch.context() as mp:
+                    mp.setattr(splits, "MAX_SPLIT_TEXT", 1000)
+                    splits.read_split_file(tmp_path / name)
+            else:
+                splits.read_split_file(tmp_path / name)
 
 
 def test_each_name_maps_to_its_lists():
@@ -492,11 +518,11 @@ def test_shipped_list_by_name_is_the_shipped_file():
     from sparsetools.pipeline.dataset.official_splits import shipped_split_file
 
     part, path = shipped_split_file("eigen:test")
-    assert part == "test" and path.name == "eigen_test_files.txt"
-    lines = [ln for ln in path.read_text().splitlines() if ln.strip()]
+    assert part == "test" and path.name == "eigen_test_files.txt.xz"
+    lines = [ln for ln in lzma.decompress(path.read_bytes()).decode().splitlines() if ln.strip()]
     assert len(lines) == 697
     part, path = shipped_split_file("official:val")
-    assert len(path.read_text().split()) == 150
+    assert len(lzma.decompress(path.read_bytes()).split()) == 150
     for bad in ("eigen", "eigen:nope", "nope:test", "mini:test"):
         with pytest.raises(ParameterError):
             shipped_split_file(bad)

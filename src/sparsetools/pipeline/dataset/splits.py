@@ -157,14 +157,30 @@ def read_split_file(path: str | os.PathLike) -> list[tuple[str, ...]]:
 
     Each line is either the KITTI Eigen form ``<folder> <frame> [l|r]``
     (``2011_09_26/2011_09_26_drive_0001_sync 0000000005 l``) or a single name: a sample id, or
-    a sequence (a nuScenes scene: every sample of it).
+    a sequence (a nuScenes scene: every sample of it). A list ending in ``.xz`` (as the
+    shipped ones are stored) is read xz-compressed, at most :data:`MAX_SPLIT_TEXT` bytes of
+    text.
     """
+    import lzma
+
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
+        if path.suffix == ".xz":
+            unpack = lzma.LZMADecompressor()
+            data = unpack.decompress(path.read_bytes(), max_length=MAX_SPLIT_TEXT)
+            if not unpack.eof:
+                raise ValueError(f"more than {MAX_SPLIT_TEXT >> 20} MiB of text, or cut short")
+            text = data.decode("utf-8")
+        else:
+            text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError, ValueError, lzma.LZMAError) as exc:
         raise ParameterError(f"{path}: cannot read split file ({exc})") from exc
     return parse_split_lines(text, str(path))
+
+
+#: The most text a compressed split list may unpack to (bytes): the largest official list,
+#: Eigen's full training split, is 2 MB.
+MAX_SPLIT_TEXT = 256 << 20
 
 
 def _frame_number(stem: str) -> int | None:
