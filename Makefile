@@ -20,7 +20,7 @@ $(STAMP): pyproject.toml
 	$(PIP) install -q --upgrade pip
 	# torch first, pinned, so that no CUDA build is pulled in by the extras below
 	$(PIP) install -q torch==$(TORCH_VERSION)
-	$(PIP) install -q -e ".[train,dask,dev,viz,open3d]"
+	$(PIP) install -q -e ".[train,dask,dev,viz,open3d,yaml]"
 	touch $(STAMP)
 
 demo: setup

@@ -74,3 +74,22 @@ def test_cli_pipeline_missing_config_is_one_line(tmp_path):
     )
     assert r.exit_code == 1
     assert r.stderr.strip().startswith("Error:") and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_a_yaml_config_without_pyyaml_names_the_extra(tmp_path, monkeypatch):
+    """PyYAML is the optional extra ``sparsetools[yaml]``: without it a YAML config is refused
+    in one line naming the extra and TOML, nothing written; a TOML config still runs."""
+    import sys
+
+    monkeypatch.setitem(sys.modules, "yaml", None)  # `import yaml` raises ImportError
+    (tmp_path / "c.yaml").write_text(CONFIG)
+    r = CliRunner().invoke(cli, ["pipeline", str(tmp_path / "c.yaml"), "-o", str(tmp_path / "o")])
+    assert r.exit_code == 1, r.output
+    err = r.stderr.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in r.output
+    assert "pip install 'sparsetools[yaml]'" in err and "TOML" in err and "c.yaml" in err
+    assert not (tmp_path / "o").exists()
+    (tmp_path / "c.toml").write_text(
+        'name = "t"\n[[steps]]\nname = "a"\nrun = "synth-scene -o ${out}/x"\n'
+    )
+    assert load_workflow(tmp_path / "c.toml", out_dir="O").steps[0].run[:2] == ["synth-scene", "-o"]

@@ -16,7 +16,7 @@ import re
 import shlex
 from pathlib import Path
 
-from ..errors import FormatError
+from ..errors import DependencyError, FormatError
 
 __all__ = ["MAX_CONFIG_BYTES", "MAX_NODES", "MAX_VALUE", "parse_config"]
 
@@ -57,9 +57,16 @@ def _load(path: Path, text: str):
 
             return tomllib.loads(text)
         if suffix in (".yaml", ".yml"):
-            import yaml
-
+            try:
+                import yaml
+            except ImportError:
+                raise DependencyError(
+                    f"{path}: a YAML pipeline config needs PyYAML: pip install "
+                    "'sparsetools[yaml]' (or write the config as TOML)"
+                ) from None
             return yaml.safe_load(text)
+    except DependencyError:
+        raise
     except Exception as exc:  # yaml.YAMLError / tomllib.TOMLDecodeError carry line numbers
         first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
         raise FormatError(f"{path}: invalid config ({first})") from exc
