@@ -1,4 +1,4 @@
-"""The command line's allocator policy (pipeline/executors.steady_allocator): a frame's
+"""The command line's allocator policy (pipeline/allocator.steady_allocator): a frame's
 arrays reuse the pages the previous frame freed instead of being faulted in again.
 
 Measured as the minor page faults per "frame" of a loop shaped like ``project``'s (a
@@ -15,13 +15,13 @@ import sys
 import pytest
 from click.testing import CliRunner
 
-from sparsetools.pipeline import executors
+from sparsetools.pipeline import allocator
 
 LOOP = """
 import resource, sys
 import numpy as np
 if sys.argv[1] == "steady":
-    from sparsetools.pipeline.executors import steady_allocator
+    from sparsetools.pipeline.allocator import steady_allocator
     assert steady_allocator()
 def frame(i):
     pts = np.full((120_000, 4), i, np.float32)
@@ -55,7 +55,7 @@ def test_frames_reuse_the_pages_the_last_frame_freed():
 
 def test_the_command_line_sets_it_for_its_process(monkeypatch):
     calls = []
-    monkeypatch.setattr(executors, "steady_allocator", lambda: calls.append(1) or True)
+    monkeypatch.setattr(allocator, "steady_allocator", lambda: calls.append(1) or True)
     from sparsetools.cli.main import cli
 
     r = CliRunner().invoke(cli, ["stats", "--help"])

@@ -96,7 +96,7 @@ class DaskExecutor:
         client = Client(cluster)
         # the run's own worker processes get the command line's allocator policy (a
         # scheduler given by address runs someone else's workers: left as they are)
-        from .executors import steady_allocator
+        from .allocator import steady_allocator
 
         client.run(steady_allocator)
         return client, cluster

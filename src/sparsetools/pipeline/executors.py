@@ -15,8 +15,7 @@ starts (forked workers inherit them; libraries a worker imports later read the e
 never by calling OpenCV's or torch's thread setters in a forked child (their locks may be held
 by a parent thread at fork time: the call can hang forever).
 
-Memory (:func:`steady_allocator`): the command line makes glibc's malloc keep the pages a
-frame frees for the next frame instead of unmapping them and faulting them in again.
+Memory: :mod:`.allocator`.
 """
 
 from __future__ import annotations
@@ -38,7 +37,6 @@ __all__ = [
     "available_cpus",
     "limit_blas_threads",
     "make_executor",
-    "steady_allocator",
     "thread_limits",
     "usable_workers",
     "worker_initializer",
@@ -182,39 +180,6 @@ def thread_limits(*, pool: bool) -> Iterator[None]:
                 os.environ.pop(var, None)
             else:
                 os.environ[var] = value
-
-
-#: glibc's ``mallopt`` parameters (``malloc.h``) and the values :func:`steady_allocator` sets:
-#: blocks up to 32 MiB come from the heap (glibc's own ceiling for its adaptive threshold),
-#: and up to 16 MiB free at the heap's top stay there for the next frame.
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
-HEAP_BLOCK_MAX = 32 << 20
-HEAP_TOP_KEPT = 16 << 20
-
-
-def steady_allocator() -> bool:
-    """Let glibc's malloc keep the memory one frame frees for the next (Linux; the command
-    line sets it for its process, and forked workers inherit it).
-
-    By default glibc serves a block above 128 kB (a point cloud, a depth map, the temporaries
-    of a projection) with an ``mmap`` of its own, unmapped when it is freed, and gives the
-    heap's free top back to the system past twice that: a batch command allocating the same
-    arrays frame after frame had the kernel fault every page of them in again each frame
-    (``project`` on 200 KITTI scans: 0.55 s of its 1.9 s in the kernel, 0.2 s with this; the
-    peak memory 2 MB higher). Fixed thresholds (:data:`HEAP_BLOCK_MAX`,
-    :data:`HEAP_TOP_KEPT`) keep those pages mapped; larger blocks are still unmapped when
-    freed. Returns whether both were set (False off glibc).
-    """
-    if not sys.platform.startswith("linux"):
-        return False
-    try:
-        mallopt = ctypes.CDLL(None).mallopt
-    except (OSError, AttributeError):
-        return False
-    mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
-    return bool(mallopt(_M_MMAP_THRESHOLD, HEAP_BLOCK_MAX)) and bool(
-        mallopt(_M_TRIM_THRESHOLD, HEAP_TOP_KEPT)
-    )
 
 
 def _die_with_parent(parent_pid: int) -> None:
