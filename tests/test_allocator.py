@@ -53,10 +53,15 @@ def test_frames_reuse_the_pages_the_last_frame_freed():
     assert default > 10 * max(steady, 1.0), (default, steady)  # what it saves, measured
 
 
-def test_the_command_line_sets_it_for_its_process(monkeypatch):
+def test_a_batch_command_sets_it_for_its_process_and_help_does_not(monkeypatch, tmp_path):
     calls = []
     monkeypatch.setattr(allocator, "steady_allocator", lambda: calls.append(1) or True)
     from sparsetools.cli.main import cli
 
-    r = CliRunner().invoke(cli, ["stats", "--help"])
-    assert r.exit_code == 0 and calls == [1]
+    r = CliRunner().invoke(cli, ["beams", "--help"])
+    assert r.exit_code == 0 and calls == []  # --help stays light: no pipeline import
+    (tmp_path / "empty").mkdir()
+    CliRunner().invoke(
+        cli, ["beams", str(tmp_path / "empty"), "--n", "4", "-o", str(tmp_path / "o")]
+    )
+    assert calls == [1]

@@ -115,9 +115,6 @@ def cli(ctx):
     )
     ctx.obj.setdefault("quiet", False)
     ctx.obj.setdefault("debug", False)
-    from ..pipeline.allocator import steady_allocator
-
-    steady_allocator()  # the process is this command's: frames reuse what the last one freed
 
 
 def main(argv=None):

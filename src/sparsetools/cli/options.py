@@ -512,7 +512,10 @@ def batch_options(f):
 
     @functools.wraps(f)
     def command(*args, workers, overwrite, on_error, executor, dask_scheduler, as_json, **kw):
+        from ..pipeline.allocator import steady_allocator
         from ..pipeline.batch import Batch
+
+        steady_allocator()  # the process is this command's: frames reuse what the last freed
 
         batch = Batch(
             workers=workers,

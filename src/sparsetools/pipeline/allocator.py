@@ -1,8 +1,8 @@
 """The memory policy of a batch command's process: frames reuse what the last one freed.
 
-The command line calls :func:`steady_allocator` for its process (forked workers inherit it;
-a Dask run sets it in the local workers it starts). Library calls leave the allocator of the
-caller's process as it is.
+Every batch command calls :func:`steady_allocator` for its process
+(``cli/options.batch_options``; forked workers inherit it, a Dask run sets it in the local
+workers it starts). Library calls leave the allocator of the caller's process as it is.
 """
 
 from __future__ import annotations
@@ -21,8 +21,8 @@ HEAP_TOP_KEPT = 16 << 20
 
 
 def steady_allocator() -> bool:
-    """Let glibc's malloc keep the memory one frame frees for the next (Linux; the command
-    line sets it for its process, and forked workers inherit it).
+    """Let glibc's malloc keep the memory one frame frees for the next (Linux; every batch
+    command sets it for its process, and forked workers inherit it).
 
     By default glibc serves a block above 128 kB (a point cloud, a depth map, the temporaries
     of a projection) with an ``mmap`` of its own, unmapped when it is freed, and gives the

@@ -94,7 +94,7 @@ class DaskExecutor:
             silence_logs=logging.ERROR,
         )
         client = Client(cluster)
-        # the run's own worker processes get the command line's allocator policy (a
+        # the run's own worker processes get a batch command's allocator policy (a
         # scheduler given by address runs someone else's workers: left as they are)
         from .allocator import steady_allocator
 
