@@ -309,3 +309,25 @@ def test_the_merge_reads_each_staged_entry_twice(tmp_path, monkeypatch):
     assert sorted(reads) == sorted(ids * 2)
     reader_parts = sorted(_parts(ds))
     assert reader_parts == [f"sparse/part-0000{i}.parquet" for i in range(2)]  # 5 + 4 frames
+
+
+def test_a_record_file_swapped_during_the_merge_is_refused(tmp_path, monkeypatch):
+    """The merge reads a staged record twice; a record file of an earlier version that names
+    another sample (or lost its points) by the second read is refused, no manifest written."""
+    ds = tmp_path / "ds"
+    _stage(ds, 3)
+    real = merge.read_staged
+    seen = []
+
+    def swapped(path):
+        row, pts = real(path)
+        seen.append(row.id)
+        if len(seen) > 3:  # the second read: another sample's record now
+            row = ManifestRow.from_dict({**row.to_dict(), "id": "seq00/9999999"})
+        return row, pts
+
+    monkeypatch.setattr(merge, "read_staged", swapped)
+    with pytest.raises(FormatError, match="changed during the merge"):
+        merge.merge_staged(ds, fractions={"train": 1.0}, seed=0, assignment=None, info={},
+                           frames_per_part=100)  # fmt: skip
+    assert not (ds / MANIFEST_NAME).exists()

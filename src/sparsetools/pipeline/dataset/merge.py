@@ -335,9 +335,10 @@ def merge_staged(
         new_rows = []
         for i in new_at:
             row, pts = staged.read(i)
-            if (pts is not None) != staged.points[i]:
+            if row.id != staged.ids[i] or (pts is not None) != staged.points[i]:
                 raise FormatError(
-                    f"{staging}: the staging record of {row.id} changed during the merge; rerun"
+                    f"{staging}: the staging record of {staged.ids[i]} changed during the "
+                    "merge; rerun"
                 )
             new_rows.append(row)
             if pts is not None:
