@@ -110,3 +110,41 @@ def test_unreachable_scheduler_is_a_clear_error(frames, tmp_path, monkeypatch):
     )
     assert r.exit_code == 1
     assert "cannot reach the Dask scheduler" in r.stderr and "Traceback" not in r.output
+
+
+def _busy_frame(item):
+    """A frame that holds its thread for a while: its thread and its start and end times."""
+    import threading
+    import time
+
+    t0 = time.perf_counter()
+    time.sleep(0.02)
+    return threading.get_ident(), t0, time.perf_counter()
+
+
+def _most_at_once(spans) -> int:
+    events = sorted([(t0, 1) for _, t0, _ in spans] + [(t1, -1) for _, _, t1 in spans])
+    most = now = 0
+    for _, step in events:
+        now += step
+        most = max(most, now)
+    return most
+
+
+def test_a_running_cluster_is_used_whole_whatever_workers_says():
+    """With a scheduler address, ``workers`` (default 1) is not the cluster's size: the chunks
+    in flight follow the threads the scheduler reports, so every worker thread gets frames
+    at once (3 chunks in flight, the size of a 1-worker run, would leave one of 4 idle)."""
+    from distributed import Client, LocalCluster
+
+    from sparsetools.pipeline.dask import DaskExecutor, cluster_threads
+
+    with LocalCluster(
+        n_workers=1, threads_per_worker=4, processes=False, dashboard_address=None
+    ) as cluster, Client(cluster) as client:  # fmt: skip
+        assert cluster_threads(client) == 4
+        ex = DaskExecutor(workers=1, scheduler=cluster.scheduler_address, chunk_size=1)
+        spans = list(ex.map(_busy_frame, range(64)))
+    assert len(spans) == 64
+    assert len({thread for thread, _, _ in spans}) == 4
+    assert _most_at_once(spans) == 4

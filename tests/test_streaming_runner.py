@@ -238,6 +238,41 @@ def test_chunk_sizer_targets_the_work_and_keeps_workers_busy():
     assert ChunkSizer(10, 4, target_seconds=1.0, fixed=7).next_size() == 7
 
 
+
+def test_chunk_sizer_shrinks_the_last_chunks():
+    """Guided self-scheduling: near the end a chunk takes at most a (2 x workers)-th of the
+    frames not yet handed out, so no worker is left with a whole chunk while the other idles."""
+    s = ChunkSizer(1000, 2, target_seconds=0.25, first=8, most=4096, balance=2)
+    s.took(8)
+    s.observe(8, 0.008)  # 1 ms per frame: 250 frames make 0.25 s; the cap is 1000 / 4
+    assert s.next_size() == 248  # ceil(992 / 4)
+    s.took(892)
+    assert s.next_size() == 25  # 100 left: ceil(100 / 4)
+    s.took(99)
+    assert s.next_size() == 1
+    s.took(1)
+    assert s.next_size() == 1  # never 0, even past the estimate (n_items is an upper bound)
+    fixed = ChunkSizer(10, 4, target_seconds=1.0, fixed=7)
+    fixed.took(9)
+    assert fixed.next_size() == 7
+
+
+def test_map_in_chunks_hands_out_every_item_once_in_shrinking_tail_chunks():
+    sizes = []
+    sizer = ChunkSizer(400, 2, target_seconds=0.05, first=8, most=4096, balance=2)
+
+    def submit(chunk):
+        sizes.append(len(chunk))
+        return _Now(([x for x in chunk], 0.001 * len(chunk)))  # 1 ms of work per frame
+
+    out = list(map_in_chunks(iter(range(400)), submit=submit,
+                             wait_any=lambda fs: [next(iter(fs))], sizer=sizer, window=4))  # fmt: skip
+    assert sorted(out) == list(range(400))
+    assert sum(sizes) == 400
+    assert max(sizes) == 50  # 0.05 s of 1 ms frames
+    assert sizes[-3:] == sorted(sizes[-3:], reverse=True) and sizes[-1] <= 2
+
+
 class _Now:
     def __init__(self, value):
         self.value = value

@@ -39,6 +39,10 @@ class ChunkSizer:
     frames as ``target_seconds`` of work at the measured seconds per frame (a running mean over
     every chunk so far), never more than ``n_items / (balance * workers)`` (so every worker
     gets about ``balance`` chunks and none waits long for the last one) nor than ``most``.
+    Towards the end a chunk takes at most a ``2 * workers``-th of the frames not yet handed
+    out (:meth:`took` counts them; guided self-scheduling): the last chunks shrink, so the
+    workers finish within about a small chunk's work of each other instead of one waiting
+    out a whole chunk of the other's.
 
     Parameters
     ----------
@@ -62,11 +66,18 @@ class ChunkSizer:
         most: int = 1024, balance: int = 4, fixed: int | None = None,
     ):  # fmt: skip
         self.fixed = fixed
+        self.n_items = n_items
+        self.workers = max(1, workers)
         self.cap = max(1, min(most, n_items // max(1, balance * workers)))
         self.first = max(1, min(first, self.cap))
         self.target = float(target_seconds)
         self._frames = 0
         self._seconds = 0.0
+        self._taken = 0
+
+    def took(self, frames: int) -> None:
+        """``frames`` frames were handed out in a chunk."""
+        self._taken += frames
 
     def observe(self, frames: int, seconds: float) -> None:
         """A chunk of ``frames`` frames took ``seconds`` of work in its worker."""
@@ -79,9 +90,9 @@ class ChunkSizer:
         if self._frames == 0:
             return self.first
         per_frame = self._seconds / self._frames
-        if per_frame <= 0:
-            return self.cap
-        return max(1, min(self.cap, math.ceil(self.target / per_frame)))
+        size = self.cap if per_frame <= 0 else math.ceil(self.target / per_frame)
+        tail = math.ceil((self.n_items - self._taken) / (2 * self.workers))
+        return max(1, min(self.cap, size, tail))
 
 
 def map_in_chunks(
@@ -116,6 +127,7 @@ def map_in_chunks(
             if not chunk:
                 exhausted = True
                 break
+            sizer.took(len(chunk))
             pending[submit(chunk)] = len(chunk)
         if not pending:
             return

@@ -22,7 +22,7 @@ from typing import Any
 from ..errors import DependencyError, ParameterError
 from ..validate import check_int_range
 
-__all__ = ["DaskExecutor"]
+__all__ = ["DaskExecutor", "cluster_threads"]
 
 log = logging.getLogger(__name__)
 
@@ -111,18 +111,30 @@ class DaskExecutor:
             return
         from distributed import wait
 
-        sizer = ChunkSizer(n, self.workers, target_seconds=self.target_seconds, first=8,
-                           most=4096, balance=2, fixed=self.chunk_size)  # fmt: skip
         client, cluster = self._client()
         try:
+            # a running cluster's size is what its scheduler says (``workers`` is the local
+            # cluster's): chunks and chunks in flight follow it, or most of it would idle
+            workers = cluster_threads(client) if self.scheduler else self.workers
+            sizer = ChunkSizer(n, workers, target_seconds=self.target_seconds, first=8,
+                               most=4096, balance=2, fixed=self.chunk_size)  # fmt: skip
             yield from map_in_chunks(
                 items,
                 submit=lambda chunk: client.submit(run_chunk, fn, chunk, pure=False),
                 wait_any=lambda fs: wait(list(fs), return_when="FIRST_COMPLETED").done,
                 sizer=sizer,
-                window=3 * self.workers,
+                window=3 * workers,
             )
         finally:
             client.close()
             if cluster is not None:
                 cluster.close()
+
+
+def cluster_threads(client) -> int:
+    """Threads of the cluster behind ``client`` (every worker's ``nthreads``), at least 1.
+
+    Taken when a run starts: workers that join later get chunks too, but the chunk sizes and
+    the chunks in flight are set for the cluster as it was.
+    """
+    return max(1, sum(client.nthreads().values()))
