@@ -717,6 +717,40 @@ def test_resume_after_interrupted_run(inputs, tmp_path):
     assert verify_dataset(out).problems == ()
 
 
+
+@pytest.mark.parametrize("earlier", ["merged", "staged only"])
+def test_a_frame_that_fails_on_a_rerun_leaves_the_manifest(inputs, tmp_path, earlier):
+    """A rerun holds what a fresh run would: a frame whose input broke since it was built
+    (its row merged, or only staged by a run interrupted before the merge) fails and is not
+    in the manifest; its stale row or staged entry never stands for it."""
+    out = tmp_path / "ds"
+    last = inputs / "rgb" / "seqC" / "000002.png"
+    last_bytes = last.read_bytes()
+    if earlier == "staged only":
+        last.write_bytes(last_bytes[:60])  # the first run stops there, before its merge
+        with pytest.raises(FrameError):
+            build(inputs, out)
+        assert not (out / MANIFEST_NAME).exists()
+        last.write_bytes(last_bytes)
+    else:
+        build(inputs, out)
+    broken = inputs / "rgb" / "seqA" / "000000.png"
+    good = broken.read_bytes()
+    broken.write_bytes(good[:60])
+    summary = build(inputs, out, on_error="skip")
+    assert summary["failed"] == 1 and list(summary["failures"]) == ["seqA/000000"]
+    assert summary["samples"] == 8
+    ids = DatasetReader(out).manifest.column("id").to_pylist()
+    assert "seqA/000000" not in ids and len(ids) == 8
+    assert verify_dataset(out).problems == ()
+    broken.write_bytes(good)  # mended: the frame is built again and comes back
+    summary = build(inputs, out, on_error="skip")
+    assert summary["processed"] == 1 and summary["failed"] == 0 and summary["samples"] == 9
+    ds = DatasetReader(out)
+    assert ds.row("seqA/000000").rgb_sha256 == hashlib.sha256(good).hexdigest()
+    assert verify_dataset(out).problems == ()
+
+
 def test_on_error_skip_writes_the_good_frames(inputs, tmp_path):
     (inputs / "sparse" / "seqB" / "000001.npy").write_bytes(b"not numpy")
     summary = build(inputs, tmp_path / "ds", on_error="skip")

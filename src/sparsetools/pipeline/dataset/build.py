@@ -454,6 +454,7 @@ class DatasetJob(BatchJob[DatasetFrameInput]):
             info=info,
             frames_per_part=self.frames_per_part,
             only={t.inputs.id for t in tasks} if summary.overwrite else None,
+            failed={r.frame_id for r in summary.failed},
         )
         linked, stages = 0, {"t_plan": round(self.plan_seconds, 4)}
         sums = dict.fromkeys(STAGES, 0.0)

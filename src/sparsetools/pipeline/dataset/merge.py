@@ -17,7 +17,7 @@ import logging
 import re
 import shutil
 from collections import Counter, defaultdict
-from collections.abc import Iterable
+from collections.abc import Collection, Iterable
 from pathlib import Path
 
 import numpy as np
@@ -186,12 +186,15 @@ def merge_staged(
     info,
     frames_per_part,
     only: set[str] | None = None,
+    failed: Collection[str] = (),
 ) -> dict:
     """Merge staged frames into the manifest and parts (see the module docstring).
 
     ``assignment``: sample id -> split (split files, the tree), else splits by sequence from
     ``fractions``. ``only``: keep only these sample ids (``--overwrite``: the dataset holds
-    this run only).
+    this run only). ``failed``: the frames that failed in this run; neither their row of an
+    earlier build nor an entry an earlier, interrupted run staged for them stands in the
+    manifest: a rerun holds what a fresh run would (``--on-error skip`` leaves them out).
 
     Memory: the earlier manifest as an Arrow table (when there is one), and per new frame its
     id, sequence and frame name; rows are read again and written a row group at a time.
@@ -217,6 +220,9 @@ def merge_staged(
     dropped = np.zeros(len(old_ids), dtype=bool)  # --overwrite: rows of frames not given
     if only is not None:
         dropped = np.array([fid not in only for fid in old_ids], dtype=bool)
+    failed = set(failed)
+    if failed:
+        dropped |= np.array([fid in failed for fid in old_ids], dtype=bool)
     if not staged.ids and not dropped.any():
         return _counts(old)
 
@@ -238,8 +244,8 @@ def merge_staged(
             pinned.setdefault(old_seq[i], old_split[i])
 
     # The new rows: the staged ones the split lists name (all without lists), their splits;
-    # with ``only``, of those frames alone.
-    new = range(len(staged.ids))
+    # with ``only``, of those frames alone; never a frame that failed in this run.
+    new = [i for i in range(len(staged.ids)) if staged.ids[i] not in failed]
     if only is not None:
         new = [i for i in new if staged.ids[i] in only]
     if assignment is not None:
