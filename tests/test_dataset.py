@@ -717,7 +717,6 @@ def test_resume_after_interrupted_run(inputs, tmp_path):
     assert verify_dataset(out).problems == ()
 
 
-
 @pytest.mark.parametrize("earlier", ["merged", "staged only"])
 def test_a_frame_that_fails_on_a_rerun_leaves_the_manifest(inputs, tmp_path, earlier):
     """A rerun holds what a fresh run would: a frame whose input broke since it was built

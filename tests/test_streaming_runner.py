@@ -238,7 +238,6 @@ def test_chunk_sizer_targets_the_work_and_keeps_workers_busy():
     assert ChunkSizer(10, 4, target_seconds=1.0, fixed=7).next_size() == 7
 
 
-
 def test_chunk_sizer_shrinks_the_last_chunks():
     """Guided self-scheduling: near the end a chunk takes at most a (2 x workers)-th of the
     frames not yet handed out, so no worker is left with a whole chunk while the other idles."""
