@@ -6,7 +6,7 @@ PIP := $(PY) -m pip
 STAMP := $(VENV)/.setup-done
 TORCH_VERSION ?= 2.13.0
 
-.PHONY: setup demo test lint bench clean sample-data docs-pictures acceptance
+.PHONY: setup demo test lint bench clean sample-data docs-pictures acceptance wheel
 
 setup: $(STAMP)
 
@@ -34,6 +34,12 @@ lint: setup
 	$(VENV)/bin/ruff check src tests benchmarks
 	$(VENV)/bin/ruff format --check src tests benchmarks
 
+# The wheel users install, in dist/. build/ is removed first: setuptools reuses it and would
+# pack files deleted from src/ since its last build (split lists once shipped as .txt).
+wheel: setup
+	rm -rf build
+	$(PIP) wheel -q --no-deps -w dist .
+
 bench: setup
 	$(PY) benchmarks/run_all.py
 
@@ -56,4 +62,4 @@ docs-pictures: setup
 	rm -rf docs/img/.sparsetools  # the records of viz -o docs/img/...: not part of the docs
 
 clean:
-	rm -rf out .pytest_cache build
+	rm -rf out .pytest_cache build dist
