@@ -12,14 +12,16 @@ Run: ``.venv/bin/python benchmarks/bench_dask.py`` (``make bench`` runs it with 
 Goal (issue 28): Dask with 2 workers >= 1.5x one process on the 4,000-frame case. The runs
 alternate (serial, local, Dask, serial, ...); medians of ``REPEAT``; every line states the
 machine's load. A Dask run pays the cluster's start (two Python processes importing the
-package): it is in the figure, as a user pays it. A last variant runs on a cluster that is
-already running (a ``LocalCluster`` of 2 single-threaded workers in a process of its own,
+package): it is in the figure, as a user pays it. Then a last variant runs on a cluster that
+is already running (a ``LocalCluster`` of 2 single-threaded workers in a process of its own,
 given by ``--dask-scheduler``, as on a real cluster; warmed by one run first): what a run
-costs when the cluster outlives it.
+costs when the cluster outlives it. That cluster is started after the alternating runs and
+stopped after its own, so that its idle processes take nothing from the others.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import subprocess
 import sys
@@ -27,7 +29,7 @@ import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _timing import interleaved, load
+from _timing import interleaved, load, median_seconds
 from bench_project import _clouds, cli_env
 from bench_scale_frames import SIZE, make_frames
 
@@ -40,9 +42,7 @@ def _cli() -> list[str]:
     return [str(exe)] if exe.exists() else [sys.executable, "-m", "sparsetools.cli.main"]
 
 
-def case(
-    name: str, clouds: Path, calib: Path, size: str, n: int, tmp: Path, scheduler: str = ""
-) -> dict:
+def case(name: str, clouds: Path, calib: Path, size: str, n: int, tmp: Path) -> dict:
     runs = iter(range(10**6))
     tag = f"case{len(list(tmp.glob('case*-out0')))}"
 
@@ -62,11 +62,13 @@ def case(
         "local 2 workers": run("--workers", "2"),
         "dask 2 workers": run("--executor", "dask", "--workers", "2"),
     }
-    if scheduler:
-        variants["dask, running"] = run("--executor", "dask", "--dask-scheduler", scheduler)
-        variants["dask, running"]()  # the workers import the package once, as on a cluster
     before = load()
     t = interleaved(variants, repeat=REPEAT, warmup=0)
+    with _running_cluster() as scheduler:
+        # warmup: the workers import the package once, as on a cluster that outlives a run
+        t["dask, running"] = median_seconds(
+            run("--executor", "dask", "--dask-scheduler", scheduler), repeat=REPEAT, warmup=1
+        )
     serial = t["one process"]
     print(f"{name}: {n} frames ({before} before, {load()} after)")
     for k, v in t.items():
@@ -87,24 +89,28 @@ while True:
 """
 
 
+@contextlib.contextmanager
+def _running_cluster():
+    """The address of a cluster running in a process of its own, stopped on exit."""
+    cluster = subprocess.Popen([sys.executable, "-c", _CLUSTER], stdout=subprocess.PIPE,
+                               text=True, env=cli_env())  # fmt: skip
+    try:
+        yield cluster.stdout.readline().strip()
+    finally:
+        cluster.kill()
+        cluster.wait()
+
+
 def main() -> None:
     with tempfile.TemporaryDirectory(prefix="bench-dask-") as tmp:
         tmp = Path(tmp)
-        cluster = subprocess.Popen([sys.executable, "-c", _CLUSTER], stdout=subprocess.PIPE,
-                                   text=True, env=cli_env())  # fmt: skip
-        try:
-            scheduler = cluster.stdout.readline().strip()
-            velo, _, calib = make_frames(tmp / "tiny", 4000)
-            tiny = case("4,000 tiny frames", velo, calib, f"{SIZE[0]}x{SIZE[1]}", 4000, tmp,
-                        scheduler)  # fmt: skip
-            print(f"  goal: dask 2 workers >= 1.5x one process: "
-                  f"{'met' if tiny['dask_ratio'] >= 1.5 else 'NOT met'} ({tiny['dask_ratio']:.2f}x)")  # fmt: skip
-            (tmp / "kitti").mkdir()
-            clouds, kcalib, size = _clouds(tmp / "kitti")
-            case("200 KITTI frames", clouds, kcalib, size, 200, tmp, scheduler)
-        finally:
-            cluster.kill()
-            cluster.wait()
+        velo, _, calib = make_frames(tmp / "tiny", 4000)
+        tiny = case("4,000 tiny frames", velo, calib, f"{SIZE[0]}x{SIZE[1]}", 4000, tmp)
+        print(f"  goal: dask 2 workers >= 1.5x one process: "
+              f"{'met' if tiny['dask_ratio'] >= 1.5 else 'NOT met'} ({tiny['dask_ratio']:.2f}x)")  # fmt: skip
+        (tmp / "kitti").mkdir()
+        clouds, kcalib, size = _clouds(tmp / "kitti")
+        case("200 KITTI frames", clouds, kcalib, size, 200, tmp)
 
 
 if __name__ == "__main__":
