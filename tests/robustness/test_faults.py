@@ -309,6 +309,58 @@ def _fix(root: Path, bad: str) -> None:
         p.write_bytes(p.with_name("000000" + p.suffix).read_bytes())
 
 
+
+def _frame_files(digest: dict[str, str]) -> dict[str, str]:
+    """The per-frame files of a tree digest (named by a frame), not the records or tables."""
+    return {k: v for k, v in digest.items()
+            if ".sparsetools" not in k and Path(k).name.startswith("0000")}  # fmt: skip
+
+
+@pytest.mark.parametrize("command", sorted(SKIPPED))
+def test_a_rerun_removes_what_an_earlier_run_made_of_a_frame_that_now_fails(command, tmp_path):
+    """A rerun leaves what a fresh run would: a frame whose input broke since an earlier run
+    made it fails, and the files that run wrote for it go (they stand for inputs it no longer
+    has); every other frame's files stay, byte for byte."""
+    root = tmp_path / "in"
+    args, bad, outputs = SKIPPED[command](root)
+    broken = {p: p.read_bytes() for p in root.rglob(f"{bad}.*")}
+    _fix(root, bad)
+    out = tmp_path / "out"
+    r = invoke([*args, "-o", out])
+    assert r.exit_code == 0, r.stderr
+    before = _frame_files(tree_digest(out))
+    assert any(bad in k for k in before)
+    for p, data in broken.items():
+        p.write_bytes(data)
+    inputs = tree_digest(root)
+    r = invoke([*args, "--on-error", "skip", "-o", out])
+    assert_no_traceback(r)
+    assert r.exit_code == 1 and f"failed {bad}" in r.stdout, (r.stdout, r.stderr)
+    good = [f"{i:06d}" for i in range(5) if f"{i:06d}" != bad]
+    assert [Path(g).stem for g in outputs(out)] == good
+    after = _frame_files(tree_digest(out))
+    assert not any(bad in k for k in after), "the failed frame's earlier files stayed"
+    assert after == {k: v for k, v in before.items() if bad not in k}
+    assert tree_digest(root) == inputs
+
+
+def test_a_failed_frames_output_edited_since_is_not_removed(tmp_path):
+    """Only the very files an earlier run wrote go: one changed since is someone's."""
+    root = tmp_path / "in"
+    args, bad, _ = _skip_project(root)
+    broken = {p: p.read_bytes() for p in root.rglob(f"{bad}.*")}
+    _fix(root, bad)
+    out = tmp_path / "out"
+    assert invoke([*args, "-o", out]).exit_code == 0
+    edited = out / f"{bad}.png"
+    edited.write_bytes(png_bytes(np.full((H, W), 3, np.uint8)))
+    for p, data in broken.items():
+        p.write_bytes(data)
+    r = invoke([*args, "--on-error", "skip", "-o", out])
+    assert r.exit_code == 1 and f"failed {bad}" in r.stdout, (r.stdout, r.stderr)
+    assert edited.read_bytes() == png_bytes(np.full((H, W), 3, np.uint8))
+
+
 @pytest.mark.parametrize("command", sorted(SKIPPED))
 def test_on_error_stop_keeps_the_frames_done_before_the_failure(command, tmp_path):
     args, bad, _ = SKIPPED[command](tmp_path / "in")

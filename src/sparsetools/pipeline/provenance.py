@@ -569,9 +569,18 @@ class OutputFolder:
         self._append(self._record(task, before, stats, output_ids))
 
     def record_failed(self, task) -> None:
-        """A failed frame keeps no record (it is recomputed on the next run)."""
+        """A failed frame keeps no record (it is recomputed on the next run), and the outputs
+        an earlier run recorded for it go when they are still the very files written then:
+        they stand for inputs the frame no longer has, and a fresh run would not have them.
+        A recorded output changed since (someone edited it) is not ours to remove: it stays."""
         self._pending.pop(task.frame_id, None)
         self.dropped.add(task.frame_id)
+        rec = self.index.get(task.frame_id) if self.index is not None else None
+        if rec is not None:
+            for role, ident in rec.output_ids.items():
+                p = task.outputs.get(role)
+                if p is not None and os.path.lexists(p) and output_unchanged(p, ident):
+                    remove_output(self.out, p)
         if not self._wrote_unrecorded:
             self._wrote_unrecorded = any(os.path.lexists(p) for p in task.outputs.values())
 
