@@ -309,7 +309,6 @@ def _fix(root: Path, bad: str) -> None:
         p.write_bytes(p.with_name("000000" + p.suffix).read_bytes())
 
 
-
 def _frame_files(digest: dict[str, str]) -> dict[str, str]:
     """The per-frame files of a tree digest (named by a frame), not the records or tables."""
     return {k: v for k, v in digest.items()
