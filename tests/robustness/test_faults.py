@@ -335,6 +335,7 @@ def test_a_rerun_removes_what_an_earlier_run_made_of_a_frame_that_now_fails(comm
     r = invoke([*args, "--on-error", "skip", "-o", out])
     assert_no_traceback(r)
     assert r.exit_code == 1 and f"failed {bad}" in r.stdout, (r.stdout, r.stderr)
+    assert "that an earlier run made of 1 frame(s) failing now" in r.stderr, r.stderr
     good = [f"{i:06d}" for i in range(5) if f"{i:06d}" != bad]
     assert [Path(g).stem for g in outputs(out)] == good
     after = _frame_files(tree_digest(out))

@@ -316,6 +316,7 @@ class OutputFolder:
         self._lock = None
         self._journal = None
         self.removed_stale = 0
+        self.removed_failed = [0, 0]  # outputs, frames: what earlier runs made of failed frames
         self._started = False
         self._had_record = False
         self._run_written = False
@@ -356,6 +357,10 @@ class OutputFolder:
             ) from exc
 
     def __exit__(self, *exc) -> None:
+        n, frames = self.removed_failed
+        if n:
+            log.warning("removed %d output(s) that an earlier run made of %d frame(s) failing "
+                        "now (they stood for inputs those frames no longer have)", n, frames)  # fmt: skip
         try:
             if self._journal is not None:
                 self._journal.__exit__(*exc)
@@ -577,10 +582,13 @@ class OutputFolder:
         self.dropped.add(task.frame_id)
         rec = self.index.get(task.frame_id) if self.index is not None else None
         if rec is not None:
+            n = 0
             for role, ident in rec.output_ids.items():
                 p = task.outputs.get(role)
                 if p is not None and os.path.lexists(p) and output_unchanged(p, ident):
-                    remove_output(self.out, p)
+                    n += remove_output(self.out, p)
+            self.removed_failed[0] += n
+            self.removed_failed[1] += n > 0
         if not self._wrote_unrecorded:
             self._wrote_unrecorded = any(os.path.lexists(p) for p in task.outputs.values())
 
