@@ -28,6 +28,7 @@ from pathlib import Path
 
 from ..errors import FormatError, OutputError
 from .atomic import atomic_path
+from .containment import remove_output
 
 __all__ = [
     "HASH_LIMIT",
@@ -245,6 +246,20 @@ def output_unchanged(path: str | os.PathLike, recorded: OutputIdentity) -> bool:
         return False
     now = output_identity(path, digest_hex_len=len(recorded.digest))
     return now is not None and now.digest == recorded.digest
+
+
+def remove_unchanged_outputs(
+    root: str | os.PathLike, outputs: Mapping[str, str | os.PathLike],
+    recorded: Mapping[str, OutputIdentity],
+) -> int:  # fmt: skip
+    """Delete each output (role -> path) that is still the file recorded for its role, inside
+    ``root`` and reached through no link; one changed since is left. Returns how many went."""
+    n = 0
+    for role, ident in recorded.items():
+        p = outputs.get(role)
+        if p is not None and output_unchanged(p, ident):
+            n += remove_output(root, p)
+    return n
 
 
 @dataclass(frozen=True)

@@ -48,6 +48,7 @@ from ..io.provenance import (
     read_frame_records,
     read_run_record,
     remove_empty_record_dir,
+    remove_unchanged_outputs,
     unchanged_since,
     write_file_record,
     write_frame_records,
@@ -316,7 +317,7 @@ class OutputFolder:
         self._lock = None
         self._journal = None
         self.removed_stale = 0
-        self.removed_failed = [0, 0]  # outputs, frames: what earlier runs made of failed frames
+        self.removed_failed = [0, 0]  # outputs and frames, of failed frames' earlier runs
         self._started = False
         self._had_record = False
         self._run_written = False
@@ -357,10 +358,9 @@ class OutputFolder:
             ) from exc
 
     def __exit__(self, *exc) -> None:
-        n, frames = self.removed_failed
-        if n:
-            log.warning("removed %d output(s) that an earlier run made of %d frame(s) failing "
-                        "now (they stood for inputs those frames no longer have)", n, frames)  # fmt: skip
+        if self.removed_failed[0]:
+            log.warning("removed %d output(s) that an earlier run made of %d frame(s) failing now",
+                        *self.removed_failed)  # fmt: skip
         try:
             if self._journal is not None:
                 self._journal.__exit__(*exc)
@@ -574,21 +574,13 @@ class OutputFolder:
         self._append(self._record(task, before, stats, output_ids))
 
     def record_failed(self, task) -> None:
-        """A failed frame keeps no record (it is recomputed on the next run), and the outputs
-        an earlier run recorded for it go when they are still the very files written then:
-        they stand for inputs the frame no longer has, and a fresh run would not have them.
-        A recorded output changed since (someone edited it) is not ours to remove: it stays."""
+        """A failed frame keeps no record (it is recomputed on the next run), nor the outputs
+        an earlier run wrote for it that are still those files (a fresh run has none)."""
         self._pending.pop(task.frame_id, None)
         self.dropped.add(task.frame_id)
         rec = self.index.get(task.frame_id) if self.index is not None else None
-        if rec is not None:
-            n = 0
-            for role, ident in rec.output_ids.items():
-                p = task.outputs.get(role)
-                if p is not None and os.path.lexists(p) and output_unchanged(p, ident):
-                    n += remove_output(self.out, p)
-            self.removed_failed[0] += n
-            self.removed_failed[1] += n > 0
+        n = remove_unchanged_outputs(self.out, task.outputs, rec.output_ids) if rec else 0
+        self.removed_failed = [self.removed_failed[0] + n, self.removed_failed[1] + (n > 0)]
         if not self._wrote_unrecorded:
             self._wrote_unrecorded = any(os.path.lexists(p) for p in task.outputs.values())
 
