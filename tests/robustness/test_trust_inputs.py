@@ -745,7 +745,7 @@ def test_defocus_sidecar_fields_are_typed(tmp_path, edit, match):
 def _as_written_by_the_pipeline(out, text):
     """``OUT/steps.json`` holding ``text``, as if the pipeline had written it (its record says
     so: the pipeline replaces only its own files)."""
-    from sparsetools.pipeline.provenance import OutputFile
+    from sparsetools.pipeline.output_file import OutputFile
 
     write(out / "steps.json", text)
     OutputFile(out / "steps.json", "pipeline", {}, []).record()

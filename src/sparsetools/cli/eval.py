@@ -27,12 +27,12 @@ from .train import progress_wanted
 def _result_files(
     output: Path, target, checkpoint: Path | None, *, overwrite: bool, plot: bool = False
 ) -> list:
-    """The JSON and CSV results as :class:`~sparsetools.pipeline.provenance.OutputFile`, checked
+    """The JSON and CSV results as :class:`~sparsetools.pipeline.output_file.OutputFile`, checked
     before anything is evaluated: a file that ``eval`` did not write, or that holds the results
     of another evaluation (``target``: another checkpoint, dataset, split or prediction folder),
     is refused (one line naming it and ``--overwrite``); ``eval``'s own earlier results of the
     same target are replaced, whatever protocol options made them."""
-    from ..pipeline.provenance import OutputFile
+    from ..pipeline.output_file import OutputFile
     from ..train.plots import eval_plot_path
     from ..train.results import eval_result_paths
 

@@ -158,7 +158,7 @@ def train_densifier(scenes, out_dir, sim_frames, image_size, beam_counts, steps,
     if not config.scenes:
         # simulated frames are a function of the settings: a finished run with the same ones is
         # up to date (a rerun does nothing), one made with others is refused naming the option
-        from ..pipeline.provenance import OutputTree
+        from ..pipeline.output_file import OutputTree
         from ..train.densifier_train import RUN_FILES, recorded_run
 
         tree = OutputTree(out_dir, "train-densifier", config.to_dict(), noun="a densifier run",

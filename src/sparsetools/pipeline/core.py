@@ -265,6 +265,7 @@ class _Guarded:
             prepare()
 
     def __call__(self, task: FrameTask) -> FrameResult:
+        written: dict = {}
         try:
             with recording_writes() as written:
                 stats = self.fn(task) or {}
@@ -276,16 +277,17 @@ class _Guarded:
             return FrameResult(task.frame_id, True, stats,
                                output_ids={r: i for r, i in ids.items() if i is not None})  # fmt: skip
         except SparsetoolsError as exc:
-            detail = traceback.format_exc() if self.debug else ""
-            return FrameResult(
-                task.frame_id, False, error=" ".join(str(exc).split()), detail=detail
-            )
+            error, detail = " ".join(str(exc).split()), traceback.format_exc()
         except MemoryError:
-            return FrameResult(task.frame_id, False, error="out of memory")
+            error, detail = "out of memory", ""
         except Exception as exc:  # an unexpected bug: keep the traceback for --debug
-            detail = traceback.format_exc() if self.debug else ""
             msg = " ".join(f"{type(exc).__name__}: {exc}".split())
-            return FrameResult(task.frame_id, False, error=f"internal error: {msg}", detail=detail)
+            error, detail = f"internal error: {msg}", traceback.format_exc()
+        # what the failed attempt wrote before it failed (the parent removes it)
+        ids = {role: _identity(p, written) for role, p in task.outputs.items()
+               if os.fspath(p) in written}  # fmt: skip
+        return FrameResult(task.frame_id, False, error=error, detail=detail if self.debug else "",
+                           output_ids={r: i for r, i in ids.items() if i is not None})  # fmt: skip
 
 
 def _identity(path: Path, written: Mapping[str, tuple[int, str]]) -> OutputIdentity | None:
@@ -562,7 +564,7 @@ def _execute(fn, tasks, plan, n, batch, summary, folder, desc, on_done) -> None:
                 if res.ok:
                     folder.record_done(task, res.stats, res.output_ids)
                 else:
-                    folder.record_failed(task)
+                    folder.record_failed(task, res.output_ids)
             res.output_ids = {}
             log_.add(pos, res)
             if on_done is not None:

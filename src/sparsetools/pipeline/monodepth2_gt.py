@@ -17,7 +17,7 @@ A line whose drive or scan is not in the tree makes the export refuse, naming th
 the first such lines: monodepth2 pairs maps and predictions by position, so a skipped line
 would shift every later map. The archive is written to a temporary file in the output folder
 and renamed; a rerun with the same split file, tree and settings is a no-op, another export
-in its place is refused unless ``overwrite`` (:class:`~.provenance.OutputFile`).
+in its place is refused unless ``overwrite`` (:class:`~.output_file.OutputFile`).
 """
 
 from __future__ import annotations
@@ -131,7 +131,7 @@ def export_monodepth2_gt(
     from ..io.calib import read_kitti_raw_calib
     from ..io.kitti import read_velodyne_bin
     from .dataset.splits import read_split_file
-    from .provenance import OutputFile
+    from .output_file import OutputFile
 
     root, split_file = Path(root), Path(split_file)
     settings = Monodepth2GtSettings(str(root.resolve()), str(split_file.resolve()), value)

@@ -137,7 +137,7 @@ def write_command_plot(
     naming ``--overwrite``); its own earlier plot is replaced.
     """
     from ..io.plots import write_plot
-    from .provenance import OutputFile
+    from .output_file import OutputFile
 
     out = OutputFile(path, command, {}, [], overwrite=overwrite, noun="a plot")
     out.up_to_date()  # raises for a file the command did not write

@@ -44,22 +44,18 @@ from ..io.provenance import (
     hold_lock,
     output_identity,
     output_unchanged,
-    read_file_record,
     read_frame_records,
     read_run_record,
     remove_empty_record_dir,
     remove_unchanged_outputs,
     unchanged_since,
-    write_file_record,
     write_frame_records,
     write_run_record,
 )
 
 __all__ = [
     "COMPATIBLE_VERSIONS",
-    "OutputFile",
     "OutputFolder",
-    "OutputTree",
     "Plan",
     "check_made_by",
     "clear_recorded",
@@ -568,19 +564,26 @@ class OutputFolder:
                 "recomputed on the next run", task.frame_id,
             )  # fmt: skip
             self.inputs_changed.add(task.frame_id)
-            self.record_failed(task)
+            self._drop(task)  # its outputs are this run's: they stay, unrecorded
             return
         self._pending.pop(task.frame_id, None)
         self._append(self._record(task, before, stats, output_ids))
 
-    def record_failed(self, task) -> None:
+    def record_failed(self, task, written: Mapping | None = None) -> None:
         """A failed frame keeps no record (it is recomputed on the next run), nor the outputs
-        an earlier run wrote for it that are still those files (a fresh run has none)."""
-        self._pending.pop(task.frame_id, None)
-        self.dropped.add(task.frame_id)
+        written for it that are still those files: an earlier run's (a fresh run has none)
+        and, ``written`` (role -> identity), those its failed attempt wrote before it failed.
+        An output changed since it was written is someone's: it stays."""
         rec = self.index.get(task.frame_id) if self.index is not None else None
         n = remove_unchanged_outputs(self.out, task.outputs, rec.output_ids) if rec else 0
         self.removed_failed = [self.removed_failed[0] + n, self.removed_failed[1] + (n > 0)]
+        remove_unchanged_outputs(self.out, task.outputs, written or {})
+        self._drop(task)
+
+    def _drop(self, task) -> None:
+        """No record for ``task``: it is recomputed on the next run."""
+        self._pending.pop(task.frame_id, None)
+        self.dropped.add(task.frame_id)
         if not self._wrote_unrecorded:
             self._wrote_unrecorded = any(os.path.lexists(p) for p in task.outputs.values())
 
@@ -588,113 +591,3 @@ class OutputFolder:
         """Drop cached identities of ``task``'s inputs (a job that rewrote one of them)."""
         for p in task.sources:
             self._identity_cache.pop(os.fspath(p), None)
-
-
-class OutputFile:
-    """The resume rule for a command that writes ONE file (``viz``, ``eval -o``).
-
-    The file is up to date when its record (``<dir>/.sparsetools/files/<name>.json``) names
-    the same command, settings and version and its inputs are unchanged; an existing file
-    without such a record, or made otherwise, is refused unless ``overwrite``.
-
-    Parameters
-    ----------
-    path : path-like
-    command : str
-    settings : dataclass or mapping
-    sources : iterable of path-like
-        Input files.
-    overwrite : bool
-    """
-
-    def __init__(
-        self, path, command: str, settings, sources, *, overwrite: bool = False,
-        noun: str = "a file",
-    ):  # fmt: skip
-        self.path = Path(path)
-        self.noun = noun
-        self.command = command
-        self.settings = settings_dict(settings)
-        self.names = option_names(settings)
-        self.sources = tuple(Path(p) for p in sources)
-        self.overwrite = overwrite
-
-    def _identities(self) -> tuple[FileIdentity, ...]:
-        return tuple(file_identity(p) for p in self.sources)
-
-    def up_to_date(self) -> bool:
-        """True when the file need not be written again; raises when it may not be."""
-        if self.path.exists() and not self.path.is_file():
-            raise OutputError(f"{self.path} exists and is not a file")
-        if self.overwrite or not self.path.exists():
-            return False
-        rec = read_file_record(self.path)
-        if rec is None:
-            raise OutputError(
-                f"{self.path} exists and was not written by this command: use --overwrite or "
-                "another -o"
-            )
-        run, frame = rec
-        check_made_by(run, command=self.command, settings=self.settings, names=self.names,
-                      noun=self.noun, place=self.path)  # fmt: skip
-        now = self._identities()
-        same = (
-            len(now) == len(frame.inputs)
-            and all(a.same_file(b) for a, b in zip(frame.inputs, now, strict=True))
-            and frame.key == self.path.name
-        )
-        return same
-
-    def record(self) -> None:
-        """Record the file just written."""
-        write_file_record(
-            self.path,
-            RunRecord(self.command, __version__, self.settings),
-            FrameRecord(self.path.name, {"file": self.path.name}, self._identities()),
-        )
-
-
-class OutputTree:
-    """The resume rule for a command that makes a whole folder at once (``synth-scene``).
-
-    The folder is up to date when its record names the same command, settings and version and
-    every file the record lists exists; a folder made otherwise, or a non-empty folder without
-    a record, is refused unless ``overwrite``.
-    """
-
-    KEY = "tree"
-
-    def __init__(self, out, command: str, settings, *, noun: str, overwrite: bool = False):
-        self.out = Path(out)
-        self.command = command
-        self.settings = settings_dict(settings)
-        self.names = option_names(settings)
-        self.noun = noun
-        self.overwrite = overwrite
-
-    def up_to_date(self) -> bool:
-        if self.out.exists() and not self.out.is_dir():
-            raise OutputError(f"{self.out} exists and is not a folder")
-        if self.overwrite or not self.out.is_dir() or not any(self.out.iterdir()):
-            return False
-        run = read_run_record(self.out)
-        if run is None:
-            raise OutputError(
-                f"{self.out} is not empty and has no record of what made it: use --overwrite "
-                "or another folder"
-            )
-        check_made_by(run, command=self.command, settings=self.settings, names=self.names,
-                      noun=self.noun, place=self.out)  # fmt: skip
-        rec = read_frame_records(self.out).get(self.KEY)
-        return rec is not None and all((self.out / rel).is_file() for rel in rec.outputs.values())
-
-    def record(self, files) -> None:
-        """Record the files the command wrote (paths inside the folder)."""
-        outputs = {}
-        for i, f in enumerate(sorted(Path(f) for f in files)):
-            try:
-                outputs[f"file{i}"] = f.resolve().relative_to(self.out.resolve()).as_posix()
-            except ValueError:
-                continue
-        write_run_record(self.out, RunRecord(self.command, __version__, self.settings))
-        write_frame_records(self.out, {self.KEY: FrameRecord(self.KEY, outputs)})

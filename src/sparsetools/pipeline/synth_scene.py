@@ -1,7 +1,7 @@
 """``synth-scene``: make a synthetic scene or video folder, or keep it when it is up to date.
 
 The generators (:mod:`sparsetools.synth`) write a whole folder at once; this module applies the
-resume rule to it (:class:`~sparsetools.pipeline.provenance.OutputTree`): the same options on a
+resume rule to it (:class:`~sparsetools.pipeline.output_file.OutputTree`): the same options on a
 folder they made -> nothing to do; other options -> refused naming the first one that differs;
 a non-empty folder they did not make -> refused (``--overwrite`` replaces it).
 """
@@ -12,7 +12,7 @@ import os
 from pathlib import Path
 
 from ..io.provenance import RECORD_DIR
-from .provenance import OutputTree
+from .output_file import OutputTree
 
 __all__ = ["run_synth_scene", "run_synth_video"]
 

@@ -11,7 +11,7 @@ import numpy as np
 
 from ..errors import OutputError, ParameterError
 from .core import BatchJob, FrameStats, FrameTask
-from .provenance import OutputFile
+from .output_file import OutputFile
 
 __all__ = [
     "ManyVizSettings",

@@ -159,7 +159,7 @@ def run_workflow(
     """
     from ..io.containment import check_contained
     from .core import check_output_dir
-    from .provenance import OutputFile
+    from .output_file import OutputFile
 
     out = check_output_dir(out_dir, [])
     written = [OutputFile(out / name, "pipeline", {}, [], overwrite=overwrite, noun="a report")

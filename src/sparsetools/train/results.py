@@ -416,7 +416,7 @@ def write_eval_results(result: EvalResult, path: str | os.PathLike) -> list[Path
 @dataclass(frozen=True)
 class EvalTarget:
     """What an evaluation scored: recorded with its result files (as the settings of
-    :class:`~sparsetools.pipeline.provenance.OutputFile`), so that results of another dataset,
+    :class:`~sparsetools.pipeline.output_file.OutputFile`), so that results of another dataset,
     split, checkpoint or prediction folder are never replaced without ``--overwrite``. Paths
     are absolute; protocol options (``--min-depth``, ``--scaling``...) are not part of it: a
     new protocol on the same data replaces eval's own results."""

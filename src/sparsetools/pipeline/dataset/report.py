@@ -550,7 +550,7 @@ def write_dataset_report(
     from ...io.atomic import atomic_write_bytes
     from ...io.containment import check_contained
     from ...io.dataset import read_manifest
-    from ..provenance import OutputFile
+    from ..output_file import OutputFile
     from .report_plots import require_matplotlib
 
     out = Path(out)
