@@ -277,17 +277,20 @@ class _Guarded:
             return FrameResult(task.frame_id, True, stats,
                                output_ids={r: i for r, i in ids.items() if i is not None})  # fmt: skip
         except SparsetoolsError as exc:
-            error, detail = " ".join(str(exc).split()), traceback.format_exc()
+            error, detail = " ".join(str(exc).split()), self._traceback()
         except MemoryError:
             error, detail = "out of memory", ""
         except Exception as exc:  # an unexpected bug: keep the traceback for --debug
             msg = " ".join(f"{type(exc).__name__}: {exc}".split())
-            error, detail = f"internal error: {msg}", traceback.format_exc()
+            error, detail = f"internal error: {msg}", self._traceback()
         # what the failed attempt wrote before it failed (the parent removes it)
         ids = {role: _identity(p, written) for role, p in task.outputs.items()
                if os.fspath(p) in written}  # fmt: skip
-        return FrameResult(task.frame_id, False, error=error, detail=detail if self.debug else "",
+        return FrameResult(task.frame_id, False, error=error, detail=detail,
                            output_ids={r: i for r, i in ids.items() if i is not None})  # fmt: skip
+
+    def _traceback(self) -> str:
+        return traceback.format_exc() if self.debug else ""
 
 
 def _identity(path: Path, written: Mapping[str, tuple[int, str]]) -> OutputIdentity | None:

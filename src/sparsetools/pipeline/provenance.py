@@ -576,7 +576,8 @@ class OutputFolder:
         An output changed since it was written is someone's: it stays."""
         rec = self.index.get(task.frame_id) if self.index is not None else None
         n = remove_unchanged_outputs(self.out, task.outputs, rec.output_ids) if rec else 0
-        self.removed_failed = [self.removed_failed[0] + n, self.removed_failed[1] + (n > 0)]
+        self.removed_failed[0] += n
+        self.removed_failed[1] += n > 0
         remove_unchanged_outputs(self.out, task.outputs, written or {})
         self._drop(task)
 

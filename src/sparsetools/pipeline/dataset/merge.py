@@ -245,7 +245,9 @@ def merge_staged(
 
     # The new rows: the staged ones the split lists name (all without lists), their splits;
     # with ``only``, of those frames alone; never a frame that failed in this run.
-    new = [i for i in range(len(staged.ids)) if staged.ids[i] not in failed]
+    new = range(len(staged.ids))
+    if failed:
+        new = [i for i in new if staged.ids[i] not in failed]
     if only is not None:
         new = [i for i in new if staged.ids[i] in only]
     if assignment is not None:
